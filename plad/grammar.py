@@ -1,0 +1,292 @@
+"""The grammar as data: a token table that drives validity, masks and the length cap.
+
+Every domain describes its language as a *typed stack machine*. Each token
+pops a sequence of grammar symbols from the top of a stack and pushes a
+sequence of symbols; a program is complete when the stack becomes empty.
+This one mechanism covers both notations the paper uses:
+
+* postfix (2D CSG, CSGNet): the stack holds finished sub-shapes ``E``. A draw
+  token pops nothing and pushes ``E``; an operator pops ``E E`` and pushes
+  ``E``; the stop token ``$`` pops the last ``E`` (and is only allowed when
+  that empties the stack).
+* prefix (3D CSG): the stack holds what is still *expected*. It starts as
+  ``[E]``; ``union`` pops ``E`` and pushes ``E E``; ``cuboid`` pops ``E`` and
+  pushes six ``N``; an integer pops ``N``.
+
+From the table alone the generic code derives, per symbol, the least number
+of tokens that can remove it from the stack (a potential; see
+:func:`_symbol_costs`). For a prefix, ``length + sum(cost(stack))`` is the
+shortest complete program it can still become, so the decoding mask keeps
+exactly the tokens after which that bound stays within ``max_len``: every
+masked decode ends in a valid program. The contract test checks this bound
+by random masked rollouts for every domain.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import torch
+
+
+class ProgramError(ValueError):
+    """An invalid program; ``position`` is the 0-based index of the offending token."""
+
+    def __init__(self, message: str, position: int | None = None, token: str | None = None):
+        super().__init__(message)
+        self.position = position
+        self.token = token
+
+
+@dataclass(frozen=True)
+class Token:
+    """One entry of a domain's token table.
+
+    ``pops``/``pushes`` list grammar symbols bottom-to-top (the last one is the
+    stack top). ``stop`` tokens may only be used when they empty the stack.
+    ``kind`` and ``params`` are for the domain's own use (executor, printing).
+    """
+
+    name: str
+    pops: tuple[str, ...] = ()
+    pushes: tuple[str, ...] = ()
+    stop: bool = False
+    kind: str = ""
+    params: tuple = ()
+
+
+@dataclass
+class GrammarState:
+    """Batched decoding state: one typed stack per sequence.
+
+    stack:  (B, D) long, symbol ids bottom-to-top; entries at or above ``depth`` are junk.
+    depth:  (B,) long, stack height.
+    length: (B,) long, tokens emitted so far.
+    cost:   (B,) long, sum of symbol costs on the stack (lower bound on tokens still needed).
+    """
+
+    stack: torch.Tensor
+    depth: torch.Tensor
+    length: torch.Tensor
+    cost: torch.Tensor
+
+    @property
+    def done(self) -> torch.Tensor:
+        """(B,) bool: the program is complete (the stack emptied after at least one token)."""
+        return (self.depth == 0) & (self.length > 0)
+
+    def select(self, index: torch.Tensor) -> "GrammarState":
+        """Reorder/duplicate rows (beam search keeps the surviving hypotheses)."""
+        return GrammarState(self.stack[index], self.depth[index], self.length[index], self.cost[index])
+
+
+def _symbol_costs(tokens: Sequence[Token], symbols: Sequence[str], ceiling: int) -> dict[str, int]:
+    """Least tokens needed to remove each symbol from the stack.
+
+    We look for the largest potential ``c`` with, for every token,
+    ``sum c(pops) <= 1 + sum c(pushes)``: then ``sum c(stack)`` never
+    overestimates the tokens still needed. Starting from an upper bound and
+    tightening one constraint at a time converges to it for the grammars we
+    use (2D: c(E) = 1; 3D: c(N) = 1, c(E) = 7). Symbols that can never be
+    removed keep ``ceiling`` and therefore are never allowed on the stack.
+    """
+    cost = {s: ceiling for s in symbols}
+    for _ in range(4 * len(symbols) + 8):
+        changed = False
+        for t in tokens:
+            if not t.pops:
+                continue
+            gain = 1 + sum(cost[s] for s in t.pushes)
+            for i, s in enumerate(t.pops):
+                others = sum(cost[o] for j, o in enumerate(t.pops) if j != i)
+                bound = max(0, min(ceiling, gain - others))
+                if bound < cost[s]:
+                    cost[s] = bound
+                    changed = True
+        if not changed:
+            break
+    return cost
+
+
+@dataclass
+class TokenTable:
+    """A domain's vocabulary and grammar.
+
+    ``start`` is the initial stack (bottom-to-top); ``max_len`` caps the
+    number of tokens of a program, stop token included.
+    """
+
+    tokens: tuple[Token, ...]
+    start: tuple[str, ...]
+    max_len: int
+    _by_name: dict[str, int] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.tokens = tuple(self.tokens)
+        self._by_name = {}
+        for i, t in enumerate(self.tokens):
+            if t.name in self._by_name:
+                raise ValueError(f"duplicate token name {t.name!r} in token table")
+            self._by_name[t.name] = i
+        names: list[str] = []
+        for t in self.tokens:
+            for s in (*t.pops, *t.pushes):
+                if s not in names:
+                    names.append(s)
+        for s in self.start:
+            if s not in names:
+                names.append(s)
+        self.symbols: tuple[str, ...] = tuple(names)
+        self._sym = {s: i for i, s in enumerate(self.symbols)}
+        self.symbol_cost = _symbol_costs(self.tokens, self.symbols, self.max_len + 1)
+        # Stack height can never exceed the cap: every symbol costs >= 1 token
+        # to remove, unless it has cost 0 (then it needs no slot bound anyway).
+        self.max_depth = self.max_len + len(self.start)
+        self._tensors: dict[torch.device, dict[str, torch.Tensor]] = {}
+
+    # ---- plain (per-program) API -------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.tokens)
+
+    @property
+    def names(self) -> list[str]:
+        return [t.name for t in self.tokens]
+
+    def index(self, name: str) -> int:
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise ProgramError(f"unknown token {name!r}", token=name) from None
+
+    def has(self, name: str) -> bool:
+        return name in self._by_name
+
+    def check(self, ids: Sequence[int]) -> None:
+        """Raise :class:`ProgramError` naming the first token that makes ``ids`` invalid."""
+        stack = list(self.start)
+        if not ids:
+            raise ProgramError("empty program", position=0)
+        for pos, i in enumerate(ids):
+            if not 0 <= int(i) < len(self.tokens):
+                raise ProgramError(f"token id {i} at position {pos} is out of range", position=pos)
+            t = self.tokens[int(i)]
+            if stack == [] and pos > 0:
+                raise ProgramError(
+                    f"token {pos} {t.name!r} comes after the program is already complete",
+                    position=pos, token=t.name)
+            n = len(t.pops)
+            if len(stack) < n or tuple(stack[len(stack) - n:]) != t.pops:
+                raise ProgramError(
+                    f"token {pos} {t.name!r} needs {' '.join(t.pops) or 'nothing'} on the stack, "
+                    f"found {' '.join(stack) or 'an empty stack'}", position=pos, token=t.name)
+            del stack[len(stack) - n:]
+            stack.extend(t.pushes)
+            if t.stop and stack:
+                raise ProgramError(
+                    f"token {pos} {t.name!r} ends the program but {' '.join(stack)} is left unused",
+                    position=pos, token=t.name)
+            if pos + 1 > self.max_len:
+                raise ProgramError(f"program is longer than the cap of {self.max_len} tokens",
+                                   position=pos, token=t.name)
+        if stack:
+            raise ProgramError(
+                f"program is incomplete: {' '.join(stack)} still expected after the last token",
+                position=len(ids))
+
+    def is_valid(self, ids: Sequence[int]) -> bool:
+        try:
+            self.check(ids)
+        except ProgramError:
+            return False
+        return True
+
+    # ---- batched (decoding) API ------------------------------------------------
+    def _t(self, device: torch.device) -> dict[str, torch.Tensor]:
+        """Per-token tensors: pops (top first, -1 padded), push ids, depth and cost deltas."""
+        if device not in self._tensors:
+            V = len(self.tokens)
+            P = max([len(t.pops) for t in self.tokens] + [1])
+            Q = max([len(t.pushes) for t in self.tokens] + [1])
+            pops = torch.full((V, P), -1, dtype=torch.long)
+            pushes = torch.full((V, Q), -1, dtype=torch.long)
+            n_pop = torch.zeros(V, dtype=torch.long)
+            n_push = torch.zeros(V, dtype=torch.long)
+            dcost = torch.zeros(V, dtype=torch.long)
+            stop = torch.zeros(V, dtype=torch.bool)
+            for v, t in enumerate(self.tokens):
+                for j, s in enumerate(reversed(t.pops)):
+                    pops[v, j] = self._sym[s]
+                for j, s in enumerate(t.pushes):
+                    pushes[v, j] = self._sym[s]
+                n_pop[v], n_push[v] = len(t.pops), len(t.pushes)
+                dcost[v] = sum(self.symbol_cost[s] for s in t.pushes) - sum(
+                    self.symbol_cost[s] for s in t.pops)
+                stop[v] = t.stop
+            self._tensors[device] = {
+                k: x.to(device) for k, x in dict(
+                    pops=pops, pushes=pushes, n_pop=n_pop, n_push=n_push, dcost=dcost,
+                    stop=stop, sym_cost=torch.tensor([self.symbol_cost[s] for s in self.symbols]),
+                ).items()}
+        return self._tensors[device]
+
+    def initial_state(self, batch: int, device: torch.device | str = "cpu") -> GrammarState:
+        device = torch.device(device)
+        stack = torch.zeros(batch, self.max_depth + 1, dtype=torch.long, device=device)
+        for j, s in enumerate(self.start):
+            stack[:, j] = self._sym[s]
+        cost = sum(self.symbol_cost[s] for s in self.start)
+        return GrammarState(
+            stack=stack,
+            depth=torch.full((batch,), len(self.start), dtype=torch.long, device=device),
+            length=torch.zeros(batch, dtype=torch.long, device=device),
+            cost=torch.full((batch,), cost, dtype=torch.long, device=device),
+        )
+
+    def mask(self, state: GrammarState) -> torch.Tensor:
+        """(B, V) bool: tokens that keep each prefix completable within ``max_len``.
+
+        A finished row allows nothing. Vectorized over batch and vocabulary.
+        """
+        T = self._t(state.stack.device)
+        P = T["pops"].shape[1]
+        # tops[:, j] = symbol j places below the top (j = 0 is the top), -2 below the bottom.
+        offs = torch.arange(P, device=state.stack.device)
+        pos = state.depth[:, None] - 1 - offs[None, :]                      # (B, P)
+        tops = torch.gather(state.stack, 1, pos.clamp(min=0))
+        tops = torch.where(pos >= 0, tops, torch.full_like(tops, -2))
+        need = T["pops"][None, :, :]                                         # (1, V, P)
+        match = ((tops[:, None, :] == need) | (need == -1)).all(dim=2)       # (B, V)
+        new_depth = state.depth[:, None] - T["n_pop"][None, :] + T["n_push"][None, :]
+        new_len = state.length[:, None] + 1
+        new_cost = state.cost[:, None] + T["dcost"][None, :]
+        ok = match & (new_len + new_cost <= self.max_len) & (new_depth <= self.max_depth)
+        ok &= ~T["stop"][None, :] | (new_depth == 0)
+        ok &= ~state.done[:, None]
+        return ok
+
+    def advance(self, state: GrammarState, tokens: torch.Tensor) -> GrammarState:
+        """Apply one token per row ((B,) long). Rows already done are left unchanged.
+
+        The caller is expected to have respected :meth:`mask`; this does not re-check.
+        """
+        T = self._t(state.stack.device)
+        live = ~state.done
+        n_pop, n_push = T["n_pop"][tokens], T["n_push"][tokens]
+        base = state.depth - n_pop                                          # (B,)
+        stack = state.stack.clone()
+        Q = T["pushes"].shape[1]
+        for j in range(Q):
+            write = live & (j < n_push)
+            col = (base + j).clamp(0, stack.shape[1] - 1)
+            cur = torch.gather(stack, 1, col[:, None])[:, 0]
+            val = torch.where(write, T["pushes"][tokens, j], cur)
+            stack.scatter_(1, col[:, None], val[:, None])
+        return GrammarState(
+            stack=stack,
+            depth=torch.where(live, base + n_push, state.depth),
+            length=torch.where(live, state.length + 1, state.length),
+            cost=torch.where(live, state.cost + T["dcost"][tokens], state.cost),
+        )
+
+    def encode(self, names: Iterable[str]) -> list[int]:
+        return [self.index(n) for n in names]
