@@ -1,0 +1,39 @@
+"""Registry of domain plugins.
+
+Domains are imported lazily by name so that ``import plad`` and the CLI stay
+fast and a broken optional domain cannot break the others.
+"""
+from __future__ import annotations
+
+import importlib
+
+from plad.domains.base import Domain
+
+# name -> "module:attribute" of a Domain subclass
+_REGISTRY: dict[str, str] = {
+    "csg2d": "plad.domains.csg2d:CSG2D",
+}
+_INSTANCES: dict[str, Domain] = {}
+
+
+def register(name: str, target: str) -> None:
+    """Register a domain plugin given as ``"package.module:ClassName"``."""
+    _REGISTRY[name] = target
+    _INSTANCES.pop(name, None)
+
+
+def domain_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def get_domain(name: str) -> Domain:
+    """The (cached) domain instance registered under ``name``."""
+    if name not in _REGISTRY:
+        raise KeyError(f"unknown domain {name!r}; known domains: {', '.join(domain_names())}")
+    if name not in _INSTANCES:
+        module, attr = _REGISTRY[name].split(":")
+        _INSTANCES[name] = getattr(importlib.import_module(module), attr)()
+    return _INSTANCES[name]
+
+
+__all__ = ["Domain", "domain_names", "get_domain", "register"]

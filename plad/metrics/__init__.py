@@ -1,0 +1,66 @@
+"""Reconstruction metrics. Each declares whether higher is better, so that no
+caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.best`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A per-shape similarity/distance between executed programs and targets.
+
+    ``fn(pred, target)`` takes bool tensors (N, *shape) and returns float64 (N,).
+    ``worst`` is the value given to a program that cannot be executed.
+    """
+
+    name: str
+    higher_is_better: bool
+    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    worst: float
+
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return self.fn(pred, target)
+
+    def score_candidates(self, candidates: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Score K candidates per target: candidates (N, K, *shape), target (N, *shape) -> (N, K)."""
+        n, k = candidates.shape[:2]
+        expanded = target.unsqueeze(1).expand_as(candidates)
+        return self.fn(candidates.reshape(n * k, *candidates.shape[2:]),
+                       expanded.reshape(n * k, *target.shape[1:])).reshape(n, k)
+
+    def better(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Elementwise: ``a`` strictly better than ``b``."""
+        return a > b if self.higher_is_better else a < b
+
+    def best(self, values: torch.Tensor, dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
+        """(best values, their indices) along ``dim``; the first index wins ties."""
+        return values.max(dim=dim) if self.higher_is_better else values.min(dim=dim)
+
+
+def iou(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Volumetric/areal IoU of bool tensors (N, *shape) -> float64 (N,).
+
+    Two empty shapes are identical: IoU 1.
+    """
+    p = pred.reshape(pred.shape[0], -1)
+    t = target.reshape(target.shape[0], -1)
+    inter = (p & t).sum(dim=1).double()
+    union = (p | t).sum(dim=1).double()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
+
+
+IOU = Metric("iou", higher_is_better=True, fn=iou, worst=0.0)
+
+
+def chamfer_metric() -> Metric:
+    """CSGNet's Chamfer distance on 64x64 canvases (lower is better)."""
+    from plad.metrics.chamfer import PENALTY, chamfer
+
+    return Metric("chamfer", higher_is_better=False, fn=chamfer, worst=PENALTY)
+
+
+__all__ = ["IOU", "Metric", "chamfer_metric", "iou"]

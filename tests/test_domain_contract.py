@@ -1,0 +1,105 @@
+"""The contract every domain plugin must meet. A domain counts as added when this passes for it."""
+import numpy as np
+import pytest
+import torch
+
+from plad.domains import domain_names, get_domain
+from plad.domains.base import pad_programs
+from plad.grammar import ProgramError
+from plad.metrics import Metric
+
+DOMAINS = domain_names()
+
+
+@pytest.fixture(scope="module", params=DOMAINS)
+def domain(request):
+    return get_domain(request.param)
+
+
+def masked_rollouts(domain, n: int, seed: int) -> list[list[int]]:
+    """Uniformly random decoding under the grammar mask, all rows in one batch."""
+    table = domain.tokens
+    gen = torch.Generator().manual_seed(seed)
+    state = table.initial_state(n)
+    out = [[] for _ in range(n)]
+    for _ in range(table.max_len):
+        mask = table.mask(state)
+        live = ~state.done
+        if not live.any():
+            break
+        # a live row must always have a way forward: the mask is never a dead end
+        assert mask[live].any(dim=1).all()
+        probs = mask.float() + (~live).float()[:, None] * 1e-9  # finished rows draw anything, ignored
+        tok = torch.multinomial(probs, 1, generator=gen)[:, 0]
+        for i in torch.nonzero(live).flatten().tolist():
+            out[i].append(int(tok[i]))
+        state = table.advance(state, tok)
+    assert state.done.all(), "masked decoding must finish within the length cap"
+    return out
+
+
+def test_masked_decoding_always_yields_valid_programs(domain):
+    programs = masked_rollouts(domain, 500, seed=0)
+    for ids in programs:
+        domain.check(ids)
+        assert len(ids) <= domain.tokens.max_len
+    shapes = domain.execute(pad_programs(programs))
+    assert shapes.dtype == torch.bool and tuple(shapes.shape) == (len(programs), *domain.shape)
+
+
+def test_text_round_trip(domain):
+    for ids in masked_rollouts(domain, 100, seed=1):
+        assert domain.parse(domain.format(ids)) == ids
+
+
+def test_sampled_programs_are_valid_and_accepted_by_the_mask(domain):
+    programs = domain.sample(300, np.random.default_rng(0))
+    assert len(programs) == 300
+    table = domain.tokens
+    state = table.initial_state(len(programs))
+    batch = pad_programs(programs)
+    for t in range(batch.shape[1]):
+        live = ~state.done
+        if not live.any():
+            break
+        mask = table.mask(state)
+        rows = torch.nonzero(live).flatten()
+        # the mask never forbids a token of a valid program (it is not too strict)
+        assert mask[rows, batch[rows, t]].all()
+        state = table.advance(state, batch[:, t])
+    assert state.done.all()
+    for ids in programs:
+        domain.check(ids)
+    shapes = domain.execute(batch)
+    flat = shapes.reshape(len(programs), -1)
+    assert flat.any(dim=1).all() and not flat.all(dim=1).any()
+
+
+def test_execution_is_deterministic_and_batch_independent(domain):
+    programs = domain.sample(64, np.random.default_rng(3))
+    batch = pad_programs(programs)
+    whole = domain.execute(batch)
+    one_by_one = torch.cat([domain.execute(batch[i:i + 1]) for i in range(len(programs))])
+    assert torch.equal(whole, one_by_one)
+
+
+def test_garbage_text_gets_a_program_error(domain):
+    for text in ["", "   ", "???", "$$$", "(", ")" * 3]:
+        with pytest.raises(ProgramError):
+            domain.parse(text)
+
+
+def test_metric_declares_its_direction(domain):
+    assert isinstance(domain.metric, Metric)
+    assert isinstance(domain.metric.higher_is_better, bool)
+    programs = domain.sample(8, np.random.default_rng(4))
+    shapes = domain.execute(pad_programs(programs))
+    self_score = domain.metric(shapes, shapes)
+    other = domain.metric(shapes, shapes.roll(1, dims=0))
+    # a shape matches itself at least as well as it matches another one
+    assert not domain.metric.better(other, self_score).any()
+
+
+def test_target_data_has_the_domain_shape(domain, datasets_dir):
+    shapes = domain.target_data("val", datasets_dir)
+    assert shapes.dtype == bool and shapes.shape[1:] == domain.shape and len(shapes) > 0
