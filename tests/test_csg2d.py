@@ -1,0 +1,142 @@
+"""2D CSG: vocabulary, text form, executor (against the independent renderer), sampler."""
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from plad.domains import get_domain
+from plad.domains.base import pad_programs
+from plad.domains.csg2d.executor import pack, unpack
+from plad.domains.csg2d.tokens import token_table
+from plad.grammar import ProgramError
+from tests.conftest import require_shared
+from tests.reference.csg2d_render import render
+
+DOMAIN = get_domain("csg2d")
+
+
+def reference_degenerate(program: str) -> bool:
+    """Independent check of the sampler's rejection rule, step by step with numpy."""
+    stack = []
+    for m in re.finditer(r"([cst])\((\d+),(\d+),(\d+)\)|([+*\-])", program):
+        if m.group(1):
+            stack.append(render(f"{m.group(0)}$"))
+            continue
+        b, a = stack.pop(), stack.pop()
+        op = m.group(5)
+        out = a | b if op == "+" else a & b if op == "*" else a & ~b
+        if np.array_equal(out, a) or np.array_equal(out, b):
+            return True
+        stack.append(out)
+    (canvas,) = stack
+    return not canvas.any() or canvas.all()
+
+
+def test_vocabulary_contains_every_csgnet_token():
+    lines = require_shared("datasets/csgnet_cad/terminals.txt").read_text().split()
+    table = token_table()
+    draws = [t for t in lines if t[0] in "cst"]
+    assert len(draws) == 396
+    missing = [t for t in draws if not table.has(t)]
+    assert missing == []
+    for op in "+*-$":
+        assert table.has(op)
+    assert len(table) == 424 + 4
+
+
+def test_vocabulary_rule_keeps_primitives_inside_the_canvas():
+    bitmaps = DOMAIN.executor.bitmaps
+    for v, t in enumerate(token_table().tokens):
+        if t.kind == "draw":
+            assert bitmaps[v].any()
+
+
+@pytest.mark.parametrize("text", [
+    "c(32,24,16)s(40,40,12)+$", "t(32,32,20)$", "c(32,32,24)s(32,32,12)-$",
+    "c(16,16,8)c(48,48,8)+s(32,32,20)*$", "s(24,24,16)t(40,40,16)+c(32,32,8)-$",
+])
+def test_executor_matches_reference_on_hand_programs(text):
+    ids = DOMAIN.parse(text)
+    assert DOMAIN.format(ids) == text
+    got = DOMAIN.execute(torch.tensor([ids]))[0].numpy()
+    assert np.array_equal(got, render(text))
+
+
+def test_executor_matches_reference_on_1000_sampled_programs():
+    programs = DOMAIN.sample(1000, np.random.default_rng(123))
+    got = DOMAIN.execute(pad_programs(programs, pad=7)).numpy()  # padding after $ is ignored
+    want = np.stack([render(DOMAIN.format(p)) for p in programs])
+    bad = np.nonzero((got != want).reshape(len(programs), -1).any(axis=1))[0]
+    assert bad.size == 0, [DOMAIN.format(programs[i]) for i in bad[:5]]
+
+
+def test_10000_sampled_programs_are_valid_and_non_degenerate():
+    programs = DOMAIN.sample(10000, np.random.default_rng(7))
+    assert len(programs) == 10000
+    lengths = np.bincount([len(p) // 2 for p in programs], minlength=8)  # k draws, k-1 ops, $
+    assert lengths[0] == 0 and (lengths[1:] > 1000).all()  # 1 to 7 primitives, balanced
+    for p in programs:
+        DOMAIN.check(p)
+    # independent recheck of the rejection rule on every program
+    texts = [DOMAIN.format(p) for p in programs]
+    flagged = [t for t in texts if reference_degenerate(t)]
+    assert flagged == []
+
+
+def test_sampler_is_seeded():
+    a = DOMAIN.sample(50, np.random.default_rng(1))
+    b = DOMAIN.sample(50, np.random.default_rng(1))
+    assert a == b
+
+
+def test_pack_unpack_round_trip():
+    x = torch.rand(17, 64, 64) > 0.5
+    assert torch.equal(unpack(pack(x)), x)
+    assert pack(x).shape == (17, 64)
+
+
+def test_parse_accepts_spaces_and_a_missing_stop():
+    assert DOMAIN.parse(" c(32, 24, 16) s(40,40,12) + ") == DOMAIN.parse("c(32,24,16)s(40,40,12)+$")
+
+
+@pytest.mark.parametrize("text, where", [
+    ("c(32,24,16)x$", "token 1"),
+    ("c(33,24,16)$", "c(33,24,16)"),
+    ("c(8,8,32)$", "not in the vocabulary"),
+    ("q(8,8,8)$", "unknown primitive"),
+    ("c(a,8,8)$", "integers"),
+    ("c(32,24,16)+$", "token 1 '+'"),
+    ("c(32,24,16)c(32,24,16)$", "left unused"),
+    ("c(32,24,16)$c(32,24,16)$", "already complete"),
+])
+def test_parse_errors_name_the_token(text, where):
+    with pytest.raises(ProgramError) as err:
+        DOMAIN.parse(text)
+    assert where in str(err.value)
+
+
+def test_fuzzed_program_texts_never_crash():
+    rng = np.random.default_rng(0)
+    alphabet = list("cstq(),+-*$ 0123456789x") + ["c(32,32,16)", "s(16,16,8)", "+", "$"]
+    valid = 0
+    for _ in range(3000):
+        text = "".join(rng.choice(alphabet, size=rng.integers(0, 12)))
+        try:
+            ids = DOMAIN.parse(text)
+        except ProgramError as err:
+            assert str(err) and "\n" not in str(err)
+            continue
+        valid += 1
+        assert DOMAIN.execute(torch.tensor([ids])).shape == (1, 64, 64)
+    # random token sequences: valid ones execute, the others get a ProgramError
+    names = token_table().names
+    for _ in range(3000):
+        seq = [names[i] for i in rng.integers(0, len(names), size=rng.integers(1, 16))]
+        try:
+            ids = DOMAIN.parse("".join(seq))
+        except ProgramError:
+            continue
+        valid += 1
+        assert np.array_equal(DOMAIN.execute(torch.tensor([ids]))[0].numpy(), render(DOMAIN.format(ids)))
+    assert valid > 0
