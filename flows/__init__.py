@@ -1,0 +1,1 @@
+"""Prefect flows. They call the same functions as the DVC stages (``plad.stages``)."""

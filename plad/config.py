@@ -1,0 +1,73 @@
+"""Typed configuration from ``params.yaml``.
+
+Each component has a dataclass; its section of ``params.yaml`` is named after
+the DVC stage that uses it. Unknown keys are errors (a typo must not silently
+fall back to a default), and so are values of the wrong type.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A params file problem; the message is one line naming the file and key."""
+
+
+def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such params file")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level")
+    return data
+
+
+def _check_type(value: Any, annotation: Any) -> bool:
+    origin = typing.get_origin(annotation)
+    if annotation is Any:
+        return True
+    if origin in (typing.Union, types.UnionType):
+        return any(_check_type(value, a) for a in typing.get_args(annotation))
+    if annotation is type(None):
+        return value is None
+    if origin in (list, tuple):
+        (inner, *_) = typing.get_args(annotation) or (Any,)
+        return isinstance(value, (list, tuple)) and all(_check_type(v, inner) for v in value)
+    if origin is dict:
+        return isinstance(value, dict)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, annotation)
+
+
+def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
+    """Build ``cls`` from ``params[name]``; unknown keys and wrong types raise :class:`ConfigError`."""
+    raw = params.get(name, {}) or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: section {name!r} must be a mapping")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(raw) - fields)
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {', '.join(unknown)} in section {name!r}; "
+                          f"allowed: {', '.join(sorted(fields))}")
+    for key, value in raw.items():
+        if not _check_type(value, hints[key]):
+            raise ConfigError(f"{source}: {name}.{key} = {value!r} should be of type "
+                              f"{getattr(hints[key], '__name__', hints[key])}")
+    return cls(**raw)

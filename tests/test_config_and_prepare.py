@@ -1,0 +1,53 @@
+"""params.yaml loading (typed, strict) and the ``prepare`` stage."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plad.config import ConfigError, load_params, section
+from plad.data import load_cad
+from plad.stages.prepare import PrepareConfig, load_prepared, main, prepare
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_repository_params_load():
+    cfg = section(load_params(REPO / "params.yaml"), "prepare", PrepareConfig)
+    assert cfg.domains == ["csg2d"]
+
+
+def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
+    p = tmp_path / "params.yaml"
+    p.write_text("prepare:\n  data_dri: /x\n")
+    with pytest.raises(ConfigError, match="unknown key.*data_dri.*allowed"):
+        section(load_params(p), "prepare", PrepareConfig, source=str(p))
+    p.write_text("prepare:\n  domains: csg2d\n")
+    with pytest.raises(ConfigError, match="prepare.domains"):
+        section(load_params(p), "prepare", PrepareConfig, source=str(p))
+    p.write_text("prepare: [\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_params(p)
+    with pytest.raises(ConfigError, match="no such params file"):
+        load_params(tmp_path / "missing.yaml")
+
+
+def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
+    cfg = PrepareConfig(data_dir=str(datasets_dir), out_dir=str(tmp_path / "out"))
+    summary = prepare(cfg)["csg2d"]
+    assert summary["train_count"] == 10000 and summary["test_count"] == 3000
+    assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == summary
+    test = load_prepared(tmp_path / "out" / "csg2d.npz", "test")
+    assert np.array_equal(test, load_cad(datasets_dir, "test"))
+    assert not list((tmp_path / "out").glob(".*.tmp"))  # no temporary files left
+
+
+def test_prepare_main_reports_errors_in_one_line(tmp_path, capsys):
+    p = tmp_path / "params.yaml"
+    p.write_text(f"prepare:\n  data_dir: {tmp_path}\n  out_dir: {tmp_path / 'out'}\n")
+    assert main(["--params", str(p)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not found" in err
+    p.write_text("prepare:\n  colour: red\n")
+    assert main(["--params", str(p)]) == 1
+    assert "unknown key" in capsys.readouterr().err
