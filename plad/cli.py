@@ -1,0 +1,165 @@
+"""The ``plad`` command line.
+
+    plad execute csg2d "c(32,24,16)s(40,40,12)+$" -o shape.png
+    plad score csg2d --pred pred.npy --target target.npy
+    plad data check | download
+
+Errors in the user's input are one line on stderr and a non-zero status
+(2 for a bad program or file, 1 for missing data), never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+class UsageError(Exception):
+    """A problem with the user's input; printed as one line, exit status 2."""
+
+
+def _fail(message: str, status: int) -> int:
+    print(f"plad: error: {message}", file=sys.stderr)
+    return status
+
+
+# ---- shape files -------------------------------------------------------------------
+def save_shape(canvas: np.ndarray, path: Path) -> None:
+    """Write one executed 2D shape: PNG (8-bit grayscale, 255 inside) or .npy (bool)."""
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        np.save(path, canvas.astype(bool))
+    elif suffix == ".png":
+        from PIL import Image
+
+        Image.fromarray(canvas.astype(np.uint8) * 255, mode="L").save(path)
+    else:
+        raise UsageError(f"{path}: unsupported output type {suffix or '(none)'!r}; use .png or .npy")
+
+
+def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
+    """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            array = np.load(path, allow_pickle=False)
+        except Exception as err:  # numpy raises several types for bad files
+            raise UsageError(f"{path}: not a readable .npy file ({err.__class__.__name__}: {err})") from None
+        if array.dtype.kind not in "biuf":
+            raise UsageError(f"{path}: expected a numeric or bool array, got dtype {array.dtype}")
+        array = array != 0
+    elif suffix in (".png", ".jpg", ".jpeg", ".bmp", ".gif"):
+        from PIL import Image, UnidentifiedImageError
+
+        try:
+            with Image.open(path) as image:
+                array = np.asarray(image.convert("L")) > 127
+        except (UnidentifiedImageError, OSError) as err:
+            raise UsageError(f"{path}: not a readable image ({err})") from None
+    else:
+        raise UsageError(f"{path}: unsupported file type {suffix or '(none)'!r}; use .png or .npy")
+    if array.shape == shape:
+        array = array[None]
+    if array.ndim != len(shape) + 1 or array.shape[1:] != shape:
+        want = "x".join(map(str, shape))
+        raise UsageError(f"{path}: expected shape ({want}) or (N, {want.replace('x', ', ')}), got {array.shape}")
+    return array
+
+
+# ---- commands --------------------------------------------------------------------------
+def cmd_execute(args: argparse.Namespace) -> int:
+    import torch
+
+    from plad.domains import get_domain
+
+    domain = get_domain(args.domain)
+    text = args.program
+    if Path(text).suffix == ".txt" and Path(text).is_file():
+        text = Path(text).read_text()
+    ids = domain.parse(text)
+    canvas = domain.execute(torch.tensor([ids]))[0].numpy()
+    if args.output:
+        save_shape(canvas, Path(args.output))
+    else:
+        print("\n".join("".join("#" if v else "." for v in row) for row in canvas))
+    print(domain.format(ids), file=sys.stderr)
+    return 0
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    import torch
+
+    from plad.domains import get_domain
+
+    domain = get_domain(args.domain)
+    pred = load_shapes(Path(args.pred), domain.shape)
+    target = load_shapes(Path(args.target), domain.shape)
+    if len(pred) != len(target):
+        raise UsageError(f"{args.pred} holds {len(pred)} shapes but {args.target} holds {len(target)}")
+    values = domain.metric(torch.from_numpy(pred), torch.from_numpy(target)).numpy()
+    for v in values:
+        print(f"{v:.6f}")
+    if len(values) > 1:
+        print(f"mean {values.mean():.6f}")
+    return 0
+
+
+def cmd_data(args: argparse.Namespace) -> int:
+    from plad import data
+
+    if args.action == "download":
+        path = data.download_cad(data.resolve_data_dir(args.data_dir))
+        print(f"downloaded and verified {path}")
+        return 0
+    for split in ("train", "val", "test"):
+        shapes = data.load_cad(args.data_dir, split)
+        print(f"csg2d {split}: {len(shapes)} shapes {shapes.shape[1:]}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from plad.domains import domain_names
+
+    parser = argparse.ArgumentParser(prog="plad", description="Infer shape programs from shapes (PLAD).")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("execute", help="execute a program and write the shape")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("program", help="program text (or a .txt file holding it)")
+    p.add_argument("-o", "--output", help="output file: .png (255 inside, 0 outside) or .npy (bool)")
+    p.set_defaults(func=cmd_execute)
+
+    p = sub.add_parser("score", help="score predicted shapes against targets with the domain metric")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("--pred", required=True, help=".png or .npy (N, *shape)")
+    p.add_argument("--target", required=True, help=".png or .npy (N, *shape)")
+    p.set_defaults(func=cmd_score)
+
+    p = sub.add_parser("data", help="check or download the real datasets")
+    p.add_argument("action", choices=["check", "download"])
+    p.add_argument("--data-dir", default=None, help="data directory (default: $PLAD_DATA_DIR or ./data/datasets)")
+    p.set_defaults(func=cmd_data)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from plad.data import DataError
+    from plad.grammar import ProgramError
+
+    try:
+        return args.func(args)
+    except ProgramError as err:
+        return _fail(f"invalid {args.domain} program: {err}", 2)
+    except UsageError as err:
+        return _fail(str(err), 2)
+    except DataError as err:
+        return _fail(str(err), 1)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
