@@ -1,0 +1,231 @@
+"""The inference network p(z|x): a CNN encoder and an autoregressive Transformer decoder.
+
+Pure model code: a config dataclass and modules, no I/O.
+
+The encoder turns a shape into a few "visual tokens": a 2D CNN for 64 x 64
+canvases, a 3D CNN (the paper's supplement) for 32^3 voxels, chosen from the
+input shape. The decoder is a prefix Transformer as in the paper's 3D model:
+the sequence is [visual tokens, BOS, z_1, ..., z_t]; visual tokens attend to
+each other fully, program tokens attend to all visual tokens and causally to
+earlier program tokens; learned positional embeddings; a 2-layer MLP head.
+(The paper's 2D model is CSGNet's GRU; the issue allows a Transformer for 2D
+if it does at least as well, and one network for every domain keeps the
+search and training code generic.)
+
+Incremental decoding keeps per-layer key/value caches, so beam search costs
+one position per step instead of re-running the whole prefix.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class ModelConfig:
+    """Architecture of :class:`PLADNet`. Stored in every checkpoint."""
+
+    vocab_size: int                    # number of domain tokens (output classes)
+    max_len: int                       # program length cap (tokens, stop included)
+    input_shape: tuple[int, ...]       # (64, 64) or (32, 32, 32)
+    d_model: int = 256
+    n_layers: int = 4
+    n_heads: int = 8
+    dim_ff: int = 1024
+    dropout: float = 0.1
+    enc_channels: tuple[int, ...] = (32, 64, 128, 256)
+
+    def __post_init__(self) -> None:
+        self.input_shape = tuple(self.input_shape)
+        self.enc_channels = tuple(self.enc_channels)
+        if self.d_model % self.n_heads:
+            raise ValueError(f"d_model {self.d_model} must be divisible by n_heads {self.n_heads}")
+        if len(self.input_shape) not in (2, 3):
+            raise ValueError(f"input shape {self.input_shape}: only 2D and 3D shapes are supported")
+
+    @property
+    def bos(self) -> int:
+        """Index of the begin-of-sequence input token (not an output class)."""
+        return self.vocab_size
+
+    @property
+    def pad(self) -> int:
+        """Index of the padding input token (not an output class)."""
+        return self.vocab_size + 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class CNNEncoder(nn.Module):
+    """Conv blocks (conv, ReLU, max-pool, dropout) -> visual tokens (N, P, d_model).
+
+    2D: 3x3 convolutions, 64 -> 4 after four poolings: 16 tokens.
+    3D (paper): kernel 4, padding 2, 32 -> 2 after four poolings: 8 tokens,
+    followed by a 3-layer MLP.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        dims = len(cfg.input_shape)
+        conv = nn.Conv2d if dims == 2 else nn.Conv3d
+        pool = nn.MaxPool2d if dims == 2 else nn.MaxPool3d
+        kernel, pad = (3, 1) if dims == 2 else (4, 2)
+        layers: list[nn.Module] = []
+        c_in = 1
+        for c in cfg.enc_channels:
+            layers += [conv(c_in, c, kernel, padding=pad), nn.ReLU(), pool(2), nn.Dropout(cfg.dropout)]
+            c_in = c
+        self.net = nn.Sequential(*layers)
+        with torch.no_grad():
+            out = self.net(torch.zeros(1, 1, *cfg.input_shape))
+        self.num_tokens = int(math.prod(out.shape[2:]))
+        self.mlp = nn.Sequential(
+            nn.Linear(c_in, cfg.d_model), nn.ReLU(), nn.Dropout(cfg.dropout),
+            nn.Linear(cfg.d_model, cfg.d_model), nn.ReLU(), nn.Dropout(cfg.dropout),
+            nn.Linear(cfg.d_model, cfg.d_model))
+
+    def forward(self, shapes: torch.Tensor) -> torch.Tensor:
+        x = self.net(shapes.float().unsqueeze(1))                  # (N, C, *spatial)
+        x = x.flatten(2).transpose(1, 2)                            # (N, P, C)
+        return self.mlp(x)
+
+
+class _Layer(nn.Module):
+    """Pre-norm Transformer layer whose attention can run on cached keys/values."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.h = cfg.n_heads
+        self.ln1 = nn.LayerNorm(cfg.d_model)
+        self.qkv = nn.Linear(cfg.d_model, 3 * cfg.d_model)
+        self.out = nn.Linear(cfg.d_model, cfg.d_model)
+        self.ln2 = nn.LayerNorm(cfg.d_model)
+        self.ff = nn.Sequential(nn.Linear(cfg.d_model, cfg.dim_ff), nn.ReLU(), nn.Dropout(cfg.dropout),
+                                nn.Linear(cfg.dim_ff, cfg.d_model))
+        self.drop = nn.Dropout(cfg.dropout)
+        self.p = cfg.dropout
+
+    def _split(self, x: torch.Tensor) -> torch.Tensor:
+        n, t, d = x.shape
+        return x.view(n, t, self.h, d // self.h).transpose(1, 2)    # (N, H, T, dh)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                cache: tuple[torch.Tensor, torch.Tensor] | None = None
+                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """x (N, T, d). With ``cache`` (keys, values of earlier positions), x holds new positions only."""
+        q, k, v = self.qkv(self.ln1(x)).chunk(3, dim=-1)
+        q, k, v = self._split(q), self._split(k), self._split(v)
+        if cache is not None:
+            k = torch.cat([cache[0], k], dim=2)
+            v = torch.cat([cache[1], v], dim=2)
+        a = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.p if self.training else 0.0)
+        a = a.transpose(1, 2).reshape(x.shape)
+        x = x + self.drop(self.out(a))
+        x = x + self.drop(self.ff(self.ln2(x)))
+        return x, (k, v)
+
+
+class PLADNet(nn.Module):
+    """p(z|x). Token ids 0..V-1 are the domain's; ``cfg.bos``/``cfg.pad`` are input-only."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = CNNEncoder(cfg)
+        self.num_visual = self.encoder.num_tokens
+        self.embed = nn.Embedding(cfg.vocab_size + 2, cfg.d_model)
+        # positions: visual tokens first, then BOS + up to max_len program tokens
+        self.pos = nn.Parameter(torch.zeros(self.num_visual + cfg.max_len + 1, cfg.d_model))
+        nn.init.normal_(self.pos, std=0.02)
+        self.layers = nn.ModuleList(_Layer(cfg) for _ in range(cfg.n_layers))
+        self.ln = nn.LayerNorm(cfg.d_model)
+        self.head = nn.Sequential(nn.Linear(cfg.d_model, cfg.d_model), nn.ReLU(), nn.Dropout(cfg.dropout),
+                                  nn.Linear(cfg.d_model, cfg.vocab_size))
+
+    # ---- teacher forcing --------------------------------------------------------
+    def encode(self, shapes: torch.Tensor) -> torch.Tensor:
+        """Shapes (N, *input_shape) -> visual prefix (N, P, d)."""
+        return self.encoder(shapes)
+
+    def _mask(self, t: int, device: torch.device) -> torch.Tensor:
+        """(P+t, P+t) bool, True = may attend: the prefix sees itself, program tokens see the prefix and the past."""
+        P = self.num_visual
+        n = P + t
+        allow = torch.ones(n, n, dtype=torch.bool, device=device).tril()
+        allow[:, :P] = True
+        allow[:P, P:] = False
+        return allow
+
+    def forward_prefix(self, prefix: torch.Tensor, tokens_in: torch.Tensor) -> torch.Tensor:
+        """prefix (N, P, d), tokens_in (N, T) starting with BOS -> logits (N, T, V)."""
+        P, T = prefix.shape[1], tokens_in.shape[1]
+        x = torch.cat([prefix, self.embed(tokens_in)], dim=1) + self.pos[: P + T]
+        mask = self._mask(T, x.device)
+        for layer in self.layers:
+            x, _ = layer(x, mask)
+        return self.head(self.ln(x[:, P:]))
+
+    def forward(self, shapes: torch.Tensor, tokens_in: torch.Tensor) -> torch.Tensor:
+        return self.forward_prefix(self.encode(shapes), tokens_in)
+
+    def loss(self, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
+             prefix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean token cross-entropy and token accuracy of (shape, program) pairs.
+
+        programs (N, L) long right-padded (any value past ``lengths``); lengths (N,).
+        """
+        N, L = programs.shape
+        valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
+        target = torch.where(valid, programs, torch.zeros_like(programs))
+        tokens_in = torch.cat([torch.full((N, 1), self.cfg.bos, device=programs.device, dtype=torch.long),
+                               torch.where(valid, programs, torch.full_like(programs, self.cfg.pad))[:, :-1]], 1)
+        if prefix is None:
+            prefix = self.encode(shapes)
+        logits = self.forward_prefix(prefix, tokens_in)
+        nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
+        loss = (nll * valid).sum() / valid.sum()
+        acc = ((logits.argmax(-1) == target) & valid).sum().float() / valid.sum()
+        return loss, acc
+
+    # ---- incremental decoding -------------------------------------------------------
+    def start(self, prefix: torch.Tensor) -> tuple[torch.Tensor, list]:
+        """Run the visual prefix and the BOS token: (logits (N, V) for the first token, caches)."""
+        N, P, _ = prefix.shape
+        bos = torch.full((N, 1), self.cfg.bos, dtype=torch.long, device=prefix.device)
+        x = torch.cat([prefix, self.embed(bos)], dim=1) + self.pos[: P + 1]
+        mask = self._mask(1, x.device)
+        caches = []
+        for layer in self.layers:
+            x, kv = layer(x, mask)
+            caches.append(kv)
+        return self.head(self.ln(x[:, -1])), caches
+
+    def step(self, tokens: torch.Tensor, caches: list, position: int) -> tuple[torch.Tensor, list]:
+        """Feed one token per row ((N,) long) at program ``position`` (1-based after BOS) -> (logits, caches)."""
+        x = self.embed(tokens)[:, None, :] + self.pos[self.num_visual + position]
+        new = []
+        for layer, kv in zip(self.layers, caches):
+            x, kv = layer(x, None, kv)
+            new.append(kv)
+        return self.head(self.ln(x[:, -1])), new
+
+
+def reorder_caches(caches: list, index: torch.Tensor) -> list:
+    """Select rows of every layer's (keys, values): beam search keeps surviving hypotheses."""
+    return [(k.index_select(0, index), v.index_select(0, index)) for k, v in caches]
+
+
+def build_model(cfg: ModelConfig) -> PLADNet:
+    return PLADNet(cfg)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+__all__ = ["ModelConfig", "PLADNet", "build_model", "count_parameters", "reorder_caches"]
