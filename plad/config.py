@@ -22,6 +22,10 @@ class ConfigError(ValueError):
     """A params file problem; the message is one line naming the file and key."""
 
 
+#: Top-level keys a params file may have: ``profile`` and one section per stage.
+SECTIONS = {"profile", "prepare", "synthesize", "pretrain", "evaluate"}
+
+
 def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
@@ -32,6 +36,9 @@ def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
         raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level")
+    unknown = sorted(set(data) - SECTIONS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {', '.join(unknown)}; allowed: {', '.join(sorted(SECTIONS))}")
     return data
 
 
@@ -55,19 +62,40 @@ def _check_type(value: Any, annotation: Any) -> bool:
     return isinstance(value, annotation)
 
 
-def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
-    """Build ``cls`` from ``params[name]``; unknown keys and wrong types raise :class:`ConfigError`."""
-    raw = params.get(name, {}) or {}
+def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
+    """Build dataclass ``cls`` from a mapping; nested dataclass fields are built recursively.
+
+    Unknown keys and wrongly typed values raise :class:`ConfigError` naming ``source`` and the key.
+    """
+    raw = {} if raw is None else raw
     if not isinstance(raw, dict):
-        raise ConfigError(f"{source}: section {name!r} must be a mapping")
+        raise ConfigError(f"{source}: {where} must be a mapping, got {raw!r}")
     hints = typing.get_type_hints(cls)
     fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(raw) - fields)
     if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {', '.join(unknown)} in section {name!r}; "
+        raise ConfigError(f"{source}: unknown key(s) {', '.join(unknown)} in {where!r}; "
                           f"allowed: {', '.join(sorted(fields))}")
+    values = {}
     for key, value in raw.items():
-        if not _check_type(value, hints[key]):
-            raise ConfigError(f"{source}: {name}.{key} = {value!r} should be of type "
-                              f"{getattr(hints[key], '__name__', hints[key])}")
-    return cls(**raw)
+        hint = hints[key]
+        if dataclasses.is_dataclass(hint):
+            values[key] = build(hint, value, f"{where}.{key}", source)
+            continue
+        if not _check_type(value, hint):
+            raise ConfigError(f"{source}: {where}.{key} = {value!r} should be of type "
+                              f"{getattr(hint, '__name__', hint)}")
+        values[key] = value
+    return cls(**values)
+
+
+def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
+    """Build ``cls`` from ``params[name]`` (see :func:`build`); the section must be present."""
+    if name not in params:
+        raise ConfigError(f"{source}: section {name!r} is missing")
+    return build(cls, params[name], name, source)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A config dataclass as a plain dict (for logging)."""
+    return dataclasses.asdict(cfg)

@@ -7,7 +7,10 @@ import pytest
 
 from plad.config import ConfigError, load_params, section
 from plad.data import load_cad
+from plad.stages.evaluate import EvaluateConfig
 from plad.stages.prepare import PrepareConfig, load_prepared, main, prepare
+from plad.stages.pretrain import PretrainConfig
+from plad.stages.synthesize import SynthesizeConfig
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -30,6 +33,26 @@ def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
         load_params(p)
     with pytest.raises(ConfigError, match="no such params file"):
         load_params(tmp_path / "missing.yaml")
+    p.write_text("pretrian:\n  domain: csg2d\n")
+    with pytest.raises(ConfigError, match="unknown section.*pretrian"):
+        load_params(p)
+    p.write_text("profile: x\n")
+    with pytest.raises(ConfigError, match="section 'prepare' is missing"):
+        section(load_params(p), "prepare", PrepareConfig, source=str(p))
+    p.write_text("pretrain:\n  model:\n    d_modle: 3\n")
+    with pytest.raises(ConfigError, match="d_modle.*pretrain.model"):
+        section(load_params(p), "pretrain", PretrainConfig, source=str(p))
+
+
+def test_profiles_are_complete_and_params_is_the_cpu_profile():
+    sections = [("prepare", PrepareConfig), ("synthesize", SynthesizeConfig), ("pretrain", PretrainConfig),
+                ("evaluate", EvaluateConfig)]
+    for profile in ("smoke", "cpu", "paper"):
+        params = load_params(REPO / "profiles" / f"{profile}.yaml")
+        assert params["profile"] == profile
+        for name, cls in sections:
+            section(params, name, cls)
+    assert (REPO / "params.yaml").read_text() == (REPO / "profiles" / "cpu.yaml").read_text()
 
 
 def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
