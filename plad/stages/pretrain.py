@@ -1,0 +1,190 @@
+"""Stage ``pretrain``: supervised pretraining of p(z|x) on synthetic (shape, program) pairs.
+
+Programs come from the ``synthesize`` stage; their shapes are executed on
+the fly. Early stopping and the learning-rate schedule follow the
+validation loss on the held-out synthetic programs; the greedy-decoding
+metric on some of them is logged too. Resumable (see :mod:`plad.train`).
+
+Outputs in ``<out_dir>/<domain>/``: ``best.pt`` (the model), ``last.pt``
+(resume state), ``history.csv`` (per-epoch metrics), ``summary.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from plad.checkpoint import read_checkpoint
+from plad.config import ConfigError, load_params, section
+from plad.fsutil import atomic_write_text
+from plad.model import ModelConfig, PLADNet, count_parameters
+from plad.train import TrainConfig, fit
+
+
+@dataclass
+class ModelSection:
+    """Architecture knobs; vocabulary, length cap and input shape come from the domain."""
+
+    d_model: int = 128
+    n_layers: int = 3
+    n_heads: int = 4
+    dim_ff: int = 256
+    dropout: float = 0.1
+    enc_channels: list[int] = field(default_factory=lambda: [8, 16, 32, 64])
+
+
+@dataclass
+class PretrainConfig:
+    domain: str = "csg2d"
+    synthetic_dir: str = "data/synthetic"
+    out_dir: str = "runs/pretrain"
+    #: "auto" (CUDA when present), "cpu" or "cuda"
+    device: str = "auto"
+    #: torch CPU threads (None: torch's default)
+    threads: int | None = None
+    seed: int = 0
+    #: synthetic validation shapes decoded greedily each epoch for the domain metric
+    val_metric_shapes: int = 200
+    model: ModelSection = field(default_factory=ModelSection)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        from plad.device import default_device
+
+        return default_device()
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device: cuda was requested but no CUDA device is available")
+    return torch.device(name)
+
+
+def model_config(domain, section_cfg: ModelSection) -> ModelConfig:
+    return ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
+                       input_shape=domain.shape, **{**asdict(section_cfg),
+                                                    "enc_channels": tuple(section_cfg.enc_channels)})
+
+
+def load_programs(path: Path) -> dict[str, torch.Tensor]:
+    if not path.exists():
+        raise ConfigError(f"{path}: synthetic programs not found; run the synthesize stage first")
+    with np.load(path) as z:
+        return {k: torch.from_numpy(z[k].astype(np.int64)) for k in ("train", "val")}
+
+
+def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here."""
+    programs = programs.to(device)
+    lengths = (programs >= 0).sum(1)
+    programs = programs.clamp(min=0)
+    return domain.execute(programs), programs, lengths
+
+
+def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
+    """Train p(z|x) on the domain's synthetic programs; returns the summary (also written to disk)."""
+    from plad.domains import get_domain
+    from plad.search import greedy_decode
+
+    domain = get_domain(cfg.domain)
+    device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    data = load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")
+    train, val = data["train"], data["val"]
+    model = PLADNet(model_config(domain, cfg.model)).to(device)
+    out = Path(cfg.out_dir) / cfg.domain
+    out.mkdir(parents=True, exist_ok=True)
+    history = out / "history.csv"
+    bs = cfg.train.batch_size
+
+    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+        # a stream fixed by (seed, epoch): a resumed run trains on the same batches
+        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
+        while True:
+            perm = torch.randperm(len(train), generator=gen)
+            for start in range(0, len(perm) - bs + 1, bs):
+                yield make_batch(domain, train[perm[start:start + bs]], device)
+
+    val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
+    metric = domain.metric
+
+    @torch.no_grad()
+    def validate(m: PLADNet) -> dict[str, float]:
+        m.eval()
+        tot, acc, n = 0.0, 0.0, 0
+        for shapes, programs, lengths in val_batches:
+            loss, a = m.loss(shapes, programs, lengths)
+            k = int(lengths.sum())
+            tot, acc, n = tot + float(loss) * k, acc + float(a) * k, n + k
+        shapes = torch.cat([b[0] for b in val_batches])[: cfg.val_metric_shapes]
+        decoded = greedy_decode(m, domain.tokens, shapes)
+        from plad.domains.base import pad_programs
+
+        values = metric(domain.execute(pad_programs(decoded, device=device)), shapes)
+        return {"val_loss": tot / n, "val_acc": acc / n, f"val_{metric.name}": float(values.mean())}
+
+    def record(epoch: int, metrics: dict[str, float]) -> None:
+        row = {"epoch": epoch, **{k: round(v, 6) for k, v in metrics.items()}}
+        new = not history.exists()
+        with history.open("a", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+        if on_epoch:
+            on_epoch(epoch, metrics)
+
+    # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
+    fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
+                   "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
+                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
+    last = out / "last.pt"
+    if not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint:
+        history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
+    start = time.monotonic()
+    result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
+                 objective="val_loss", on_epoch=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint)
+    final = validate(model)
+    summary = {"domain": cfg.domain, "parameters": count_parameters(model), "best_epoch": result.best_epoch,
+               "epochs": result.epochs, "stopped": result.stopped, "train_seconds": round(result.seconds, 1),
+               "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
+               **{k: round(v, 6) for k, v in final.items()}}
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml")
+    args = parser.parse_args(argv)
+    from plad.checkpoint import CheckpointError
+
+    try:
+        cfg = section(load_params(args.params), "pretrain", PretrainConfig, source=args.params)
+        out = Path(cfg.out_dir) / cfg.domain
+        from plad.tracking import StageRun
+
+        with StageRun("pretrain", cfg.domain, asdict(cfg), out) as run:
+            summary = pretrain(cfg, on_epoch=lambda e, m: run.log_metrics(m, step=e))
+            run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
+            run.log_artifact(out / "summary.json")
+            run.log_artifact(out / "history.csv")
+            run.log_model(out / "best.pt")
+        print(json.dumps(summary))
+    except (ConfigError, CheckpointError) as err:
+        print(f"pretrain: error: {err}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
