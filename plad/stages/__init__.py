@@ -1,5 +1,34 @@
 """DVC stage entry points: each is a thin ``main()`` around a pure function.
 
 Prefect flows (``flows/``) call the same functions, so each step has one
-implementation.
+implementation. :func:`stage_main` is the shared command-line shell: read
+the stage's params section, run, print the JSON result, and turn the errors
+a user can fix into one line and exit status 1.
 """
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any, Callable, TypeVar
+
+T = TypeVar("T")
+
+
+def stage_main(stage: str, cls: type[T], run: Callable[[T], Any], argv: list[str] | None = None,
+               description: str | None = None) -> int:
+    from plad.checkpoint import CheckpointError
+    from plad.config import ConfigError, load_params, section
+    from plad.data import DataError
+
+    parser = argparse.ArgumentParser(prog=f"python -m plad.stages.{stage}", description=description)
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--section", default=stage, help="params section to read (default: the stage name)")
+    args = parser.parse_args(argv)
+    try:
+        cfg = section(load_params(args.params), args.section, cls, source=args.params)
+        print(json.dumps(run(cfg)))
+    except (ConfigError, DataError, CheckpointError) as err:
+        print(f"{stage}: error: {err}", file=sys.stderr)
+        return 1
+    return 0

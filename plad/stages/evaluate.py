@@ -9,7 +9,6 @@ shapes).
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -22,8 +21,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from plad.config import ConfigError, load_params, section
 from plad.fsutil import atomic_write_text
+from plad.stages import stage_main
 
 
 @dataclass
@@ -106,29 +105,23 @@ def evaluate(cfg: EvaluateConfig) -> dict:
     return report
 
 
+def tracked_evaluate(cfg: EvaluateConfig) -> dict:
+    """:func:`evaluate` as an MLflow run: the metric per split and the outputs as artifacts."""
+    from plad.checkpoint import read_checkpoint
+    from plad.tracking import StageRun
+
+    read_checkpoint(cfg.checkpoint)  # a missing or bad checkpoint fails before any MLflow run starts
+    out = Path(cfg.out_dir)
+    with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=cfg.method) as run:
+        report = evaluate(cfg)
+        run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
+        for name in ["metrics.json", "grid.png", *[f"{s}_programs.csv" for s in cfg.splits]]:
+            run.log_artifact(out / name)
+    return report
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", default="params.yaml")
-    parser.add_argument("--section", default="evaluate", help="params section (one per evaluated method)")
-    args = parser.parse_args(argv)
-    from plad.checkpoint import CheckpointError
-
-    try:
-        cfg = section(load_params(args.params), args.section, EvaluateConfig, source=args.params)
-        from plad.tracking import StageRun
-
-        out = Path(cfg.out_dir)
-        with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=cfg.method) as run:
-            report = evaluate(cfg)
-            run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
-            for name in ["metrics.json", "grid.png", *[f"{s}_programs.csv" for s in cfg.splits]]:
-                run.log_artifact(out / name)
-        print(json.dumps(report))
-    except (ConfigError, CheckpointError) as err:
-        print(f"evaluate: error: {err}", file=sys.stderr)
-        return 1
-    return 0
-
+    return stage_main("evaluate", EvaluateConfig, tracked_evaluate, argv, __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

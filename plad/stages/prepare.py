@@ -6,7 +6,6 @@ sha256), and writes ``<out_dir>/<domain>.npz`` (bit-packed splits) plus
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -15,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plad.config import ConfigError, load_params, section
 from plad.fsutil import atomic_write, atomic_write_text
+from plad.stages import stage_main
 
 SPLITS = ("train", "val", "test")
 
@@ -64,20 +63,7 @@ def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", default="params.yaml")
-    args = parser.parse_args(argv)
-    from plad.data import DataError
-
-    try:
-        cfg = section(load_params(args.params), "prepare", PrepareConfig, source=args.params)
-        for name, summary in prepare(cfg).items():
-            print(json.dumps(summary))
-    except (ConfigError, DataError) as err:
-        print(f"prepare: error: {err}", file=sys.stderr)
-        return 1
-    return 0
-
+    return stage_main("prepare", PrepareConfig, prepare, argv, __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -10,7 +10,6 @@ Outputs in ``<out_dir>/<domain>/``: ``best.pt`` (the model), ``last.pt``
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import sys
@@ -23,8 +22,9 @@ import numpy as np
 import torch
 
 from plad.checkpoint import read_checkpoint
-from plad.config import ConfigError, load_params, section
+from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
+from plad.stages import stage_main
 from plad.model import ModelConfig, PLADNet, count_parameters
 from plad.train import TrainConfig, fit
 
@@ -162,29 +162,23 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     return summary
 
 
+def tracked_pretrain(cfg: PretrainConfig) -> dict:
+    """:func:`pretrain` as an MLflow run: per-epoch metrics, outputs and the model."""
+    from plad.tracking import StageRun
+
+    load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")  # fail before any MLflow run starts
+    out = Path(cfg.out_dir) / cfg.domain
+    with StageRun("pretrain", cfg.domain, asdict(cfg), out) as run:
+        summary = pretrain(cfg, on_epoch=lambda e, m: run.log_metrics(m, step=e))
+        run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
+        run.log_artifact(out / "summary.json")
+        run.log_artifact(out / "history.csv")
+        run.log_model(out / "best.pt")
+    return summary
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", default="params.yaml")
-    args = parser.parse_args(argv)
-    from plad.checkpoint import CheckpointError
-
-    try:
-        cfg = section(load_params(args.params), "pretrain", PretrainConfig, source=args.params)
-        out = Path(cfg.out_dir) / cfg.domain
-        from plad.tracking import StageRun
-
-        with StageRun("pretrain", cfg.domain, asdict(cfg), out) as run:
-            summary = pretrain(cfg, on_epoch=lambda e, m: run.log_metrics(m, step=e))
-            run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
-            run.log_artifact(out / "summary.json")
-            run.log_artifact(out / "history.csv")
-            run.log_model(out / "best.pt")
-        print(json.dumps(summary))
-    except (ConfigError, CheckpointError) as err:
-        print(f"pretrain: error: {err}", file=sys.stderr)
-        return 1
-    return 0
-
+    return stage_main("pretrain", PretrainConfig, tracked_pretrain, argv, __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

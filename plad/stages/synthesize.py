@@ -7,7 +7,6 @@ on the fly far faster than they could be read back.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import dataclass
@@ -16,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from plad.config import ConfigError, load_params, section
 from plad.fsutil import atomic_write, atomic_write_text
+from plad.stages import stage_main
 
 
 @dataclass
@@ -61,17 +60,7 @@ def synthesize(cfg: SynthesizeConfig, chunk: int = 10_000) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", default="params.yaml")
-    args = parser.parse_args(argv)
-    try:
-        cfg = section(load_params(args.params), "synthesize", SynthesizeConfig, source=args.params)
-        print(json.dumps(synthesize(cfg)))
-    except ConfigError as err:
-        print(f"synthesize: error: {err}", file=sys.stderr)
-        return 1
-    return 0
-
+    return stage_main("synthesize", SynthesizeConfig, synthesize, argv, __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,29 @@
+"""Stage entry points turn the errors a user can fix into one line and exit status 1."""
+import pytest
+
+from plad.stages import evaluate, pretrain, synthesize
+
+
+@pytest.mark.parametrize("module, section", [(synthesize, "synthesize"), (pretrain, "pretrain"),
+                                             (evaluate, "evaluate")])
+def test_unknown_key_is_a_one_line_error(tmp_path, capsys, module, section):
+    p = tmp_path / "params.yaml"
+    p.write_text(f"{section}:\n  no_such_key: 1\n")
+    assert module.main(["--params", str(p)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no_such_key" in err and str(p) in err
+
+
+def test_pretrain_without_synthetic_programs_names_the_file(tmp_path, capsys):
+    p = tmp_path / "params.yaml"
+    p.write_text(f"pretrain:\n  synthetic_dir: {tmp_path / 'nothing'}\n  out_dir: {tmp_path / 'runs'}\n")
+    assert pretrain.main(["--params", str(p)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "synthesize stage" in err and str(tmp_path / "nothing") in err
+
+
+def test_evaluate_with_a_missing_checkpoint_names_the_file(tmp_path, capsys):
+    p = tmp_path / "params.yaml"
+    p.write_text(f"evaluate:\n  checkpoint: {tmp_path / 'none.pt'}\n  out_dir: {tmp_path / 'out'}\n")
+    assert evaluate.main(["--params", str(p)]) == 1
+    assert "no such checkpoint" in capsys.readouterr().err
