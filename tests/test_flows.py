@@ -1,7 +1,6 @@
 """Prefect flows run the same functions as the DVC stages."""
 import json
 
-import numpy as np
 import pytest
 
 

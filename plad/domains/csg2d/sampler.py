@@ -10,7 +10,6 @@ shape or the difference of disjoint shapes).
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from plad.domains.csg2d.executor import Executor
 from plad.domains.base import pad_programs
