@@ -1,0 +1,95 @@
+"""PLAD methods: parsing method names and the (X, Z) sources they train on.
+
+A PLAD method is a mixture of sources of (shape, program) pairs:
+
+* ``st``   self-training: (real training shape, its best program in P_BEST);
+* ``lest`` latent execution self-training: (execution of that program, program);
+* ``ws``   wake-sleep: (execution of a program sampled from a generative model, program).
+
+Mixtures are written with ``+`` and optional weights, e.g. ``lest+st`` or
+``lest:2+st:1+ws:1``. Names are parsed exactly: a substring test would read
+``lest`` as containing ``st`` and silently train LEST+ST. Each batch is drawn
+whole from one source, chosen at random with the normalized weights.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+import torch
+
+from plad.pbest import PBest
+
+SOURCES = ("st", "lest", "ws")
+
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]   # shapes (N, *s), programs (N, L), lengths (N,)
+Source = Callable[[np.random.Generator, int], Batch]
+
+
+@dataclass(frozen=True)
+class Mixture:
+    names: tuple[str, ...]
+    weights: tuple[float, ...]          # normalized, same order as ``names``
+
+    def __str__(self) -> str:
+        return "+".join(self.names)
+
+
+def parse_mixture(text: str) -> Mixture:
+    """``"lest+st"`` or ``"lest:2+st:1"`` -> Mixture; raises ValueError naming the bad part."""
+    if not text or not text.strip():
+        raise ValueError("empty method: expected sources like lest+st")
+    names, weights = [], []
+    for part in text.strip().lower().split("+"):
+        name, _, weight = part.strip().partition(":")
+        name = name.strip()
+        if name not in SOURCES:
+            raise ValueError(f"unknown PLAD source {name!r} in {text!r}; sources are {', '.join(SOURCES)}")
+        if name in names:
+            raise ValueError(f"source {name!r} appears twice in {text!r}")
+        try:
+            w = float(weight) if weight.strip() else 1.0
+        except ValueError:
+            raise ValueError(f"weight {weight!r} of {name!r} in {text!r} is not a number") from None
+        if not w > 0:
+            raise ValueError(f"weight of {name!r} in {text!r} must be positive")
+        names.append(name)
+        weights.append(w)
+    total = sum(weights)
+    return Mixture(tuple(names), tuple(w / total for w in weights))
+
+
+def _pbest_batch(pbest: PBest, shapes: np.ndarray, idx: np.ndarray, device: torch.device) -> Batch:
+    programs = torch.from_numpy(pbest.programs[idx].astype(np.int64))
+    lengths = (programs >= 0).sum(1)
+    return (torch.from_numpy(shapes[idx]).to(device), programs.clamp(min=0).to(device), lengths.to(device))
+
+
+def st_source(pbest: PBest, real: np.ndarray, device: torch.device) -> Source:
+    """Self-training: real shapes paired with their best programs (pseudo-labels)."""
+    def draw(rng: np.random.Generator, n: int) -> Batch:
+        return _pbest_batch(pbest, real, rng.choice(np.nonzero(pbest.has)[0], size=n), device)
+    return draw
+
+
+def lest_source(pbest: PBest, device: torch.device) -> Source:
+    """LEST: executions of the best programs paired with those programs (exact labels)."""
+    def draw(rng: np.random.Generator, n: int) -> Batch:
+        return _pbest_batch(pbest, pbest.executions, rng.choice(np.nonzero(pbest.has)[0], size=n), device)
+    return draw
+
+
+def mixture_batches(mixture: Mixture, sources: dict[str, Source], batch_size: int,
+                    seed: int) -> Callable[[int], Iterator[Batch]]:
+    """``batches(epoch)`` for :func:`plad.train.fit`: each batch whole from one source, by weight."""
+    missing = [n for n in mixture.names if n not in sources]
+    if missing:
+        raise ValueError(f"no data for source(s) {', '.join(missing)}")
+
+    def batches(epoch: int) -> Iterator[Batch]:
+        rng = np.random.default_rng([seed, epoch])
+        while True:
+            name = mixture.names[rng.choice(len(mixture.names), p=mixture.weights)]
+            yield sources[name](rng, batch_size)
+    return batches
