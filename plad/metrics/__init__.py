@@ -4,7 +4,7 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 
@@ -21,12 +21,18 @@ class Metric:
     higher_is_better: bool
     fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     worst: float
+    #: optional: precompute per-target work once (``prepare(target)``) and score
+    #: candidates against it (``against(candidates (N, K, *shape), prepared) -> (N, K)``)
+    prepare: Callable[[torch.Tensor], Any] | None = None
+    against: Callable[[torch.Tensor, Any], torch.Tensor] | None = None
 
     def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return self.fn(pred, target)
 
     def score_candidates(self, candidates: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Score K candidates per target: candidates (N, K, *shape), target (N, *shape) -> (N, K)."""
+        if self.prepare is not None and self.against is not None:
+            return self.against(candidates, self.prepare(target))
         n, k = candidates.shape[:2]
         expanded = target.unsqueeze(1).expand_as(candidates)
         return self.fn(candidates.reshape(n * k, *candidates.shape[2:]),
@@ -58,9 +64,10 @@ IOU = Metric("iou", higher_is_better=True, fn=iou, worst=0.0)
 
 def chamfer_metric() -> Metric:
     """CSGNet's Chamfer distance on 64x64 canvases (lower is better)."""
-    from plad.metrics.chamfer import PENALTY, chamfer
+    from plad.metrics.chamfer import PENALTY, TargetFeatures, chamfer, chamfer_against
 
-    return Metric("chamfer", higher_is_better=False, fn=chamfer, worst=PENALTY)
+    return Metric("chamfer", higher_is_better=False, fn=chamfer, worst=PENALTY,
+                  prepare=TargetFeatures.of, against=chamfer_against)
 
 
 __all__ = ["IOU", "Metric", "chamfer_metric", "iou"]
