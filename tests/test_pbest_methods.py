@@ -103,9 +103,10 @@ def test_each_batch_comes_whole_from_one_source_by_weight():
     def const(tag):
         return lambda rng, n: (torch.full((n,), tag), torch.zeros(n, 1), torch.ones(n))
     batches = mixture_batches(Mixture(("lest", "st"), (0.8, 0.2)), {"lest": const(1), "st": const(2)}, 4, seed=0)
-    drawn = [next(it)[0] for it in [batches(0)] for _ in range(2000)]
+    stream = batches(0)
+    drawn = [next(stream)[0] for _ in range(2000)]
     tags = np.array([int(b[0]) for b in drawn])
     assert all(len(set(b.tolist())) == 1 for b in drawn)
     assert abs((tags == 1).mean() - 0.8) < 0.03
-    first = [int(b[0][0]) for b in [next(batches(5)) for _ in range(1)]]
-    assert first == [int(next(batches(5))[0][0])]  # the stream is fixed by (seed, epoch)
+    first = [int(next(stream)[0][0]) for stream in (batches(5), batches(5))]
+    assert first[0] == first[1]  # the stream is fixed by (seed, epoch)
