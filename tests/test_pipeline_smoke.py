@@ -4,6 +4,7 @@ import os
 import shutil
 import subprocess
 
+import numpy as np
 import pytest
 
 from tests.conftest import REPO_ROOT
@@ -62,8 +63,13 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     assert runs["tags.plad.pipeline"].nunique() == 1  # one repro, one group
     pre = runs[runs["tags.plad.stage"] == "pretrain"].iloc[0]
     assert pre["params.train.batch_size"] == "32"
-    history = mlflow.tracking.MlflowClient().get_metric_history(pre["run_id"], "val_loss")
+    client = mlflow.tracking.MlflowClient()
+    history = client.get_metric_history(pre["run_id"], "val_loss")
     assert len(history) == 2  # one value per epoch
+    assert [a.path for a in client.list_artifacts(pre["run_id"], "checkpoint")] == ["checkpoint/best.pt"]
+    model = mlflow.pyfunc.load_model(f"runs:/{pre['run_id']}/model")  # the logged model loads and infers
+    out = model.predict(np.zeros((2, 64, 64), dtype=bool) | (np.arange(64) > 31)[None, None, :])
+    assert len(out) == 2 and "program" in out.columns
 
 
 def test_smoke_repro_is_up_to_date_afterwards(smoke_run):

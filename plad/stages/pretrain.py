@@ -173,6 +173,7 @@ def tracked_pretrain(cfg: PretrainConfig) -> dict:
         run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
         run.log_artifact(out / "summary.json")
         run.log_artifact(out / "history.csv")
+        run.log_artifact(out / "best.pt", "checkpoint")
         run.log_model(out / "best.pt")
     return summary
 
