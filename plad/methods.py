@@ -19,6 +19,7 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
+from plad.domains.base import split_padding
 from plad.pbest import PBest
 
 SOURCES = ("st", "lest", "ws")
@@ -61,9 +62,8 @@ def parse_mixture(text: str) -> Mixture:
 
 
 def _pbest_batch(pbest: PBest, shapes: np.ndarray, idx: np.ndarray, device: torch.device) -> Batch:
-    programs = torch.from_numpy(pbest.programs[idx].astype(np.int64))
-    lengths = (programs >= 0).sum(1)
-    return (torch.from_numpy(shapes[idx]).to(device), programs.clamp(min=0).to(device), lengths.to(device))
+    programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)).to(device))
+    return torch.from_numpy(shapes[idx]).to(device), programs, lengths
 
 
 def st_source(pbest: PBest, real: np.ndarray, device: torch.device) -> Source:

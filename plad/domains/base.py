@@ -84,4 +84,13 @@ def pad_programs(programs: Sequence[Sequence[int]], pad: int = 0,
     return out.to(device)
 
 
-__all__ = ["Domain", "ProgramError", "pad_programs"]
+def split_padding(programs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """-1-padded token rows (N, L) -> (rows with padding replaced by 0, lengths (N,)).
+
+    Programs are stored -1-padded on disk; executors and the model take
+    0-padded rows plus lengths.
+    """
+    return programs.clamp(min=0), (programs >= 0).sum(1)
+
+
+__all__ = ["Domain", "ProgramError", "pad_programs", "split_padding"]

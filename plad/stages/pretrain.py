@@ -23,6 +23,7 @@ import torch
 
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
+from plad.domains.base import split_padding
 from plad.fsutil import atomic_write_text
 from plad.stages import stage_main
 from plad.model import ModelConfig, PLADNet, count_parameters
@@ -82,9 +83,7 @@ def load_programs(path: Path) -> dict[str, torch.Tensor]:
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
     """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here."""
-    programs = programs.to(device)
-    lengths = (programs >= 0).sum(1)
-    programs = programs.clamp(min=0)
+    programs, lengths = split_padding(programs.to(device))
     return domain.execute(programs), programs, lengths
 
 
