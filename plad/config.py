@@ -94,8 +94,3 @@ def section(params: dict[str, Any], name: str, cls: type[T], source: str = "para
     if name not in params:
         raise ConfigError(f"{source}: section {name!r} is missing")
     return build(cls, params[name], name, source)
-
-
-def to_dict(cfg: Any) -> dict[str, Any]:
-    """A config dataclass as a plain dict (for logging)."""
-    return dataclasses.asdict(cfg)

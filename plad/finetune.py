@@ -26,7 +26,6 @@ from typing import Callable
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
@@ -34,7 +33,7 @@ from plad.fsutil import atomic_write_text
 from plad.methods import lest_source, mixture_batches, parse_mixture, st_source
 from plad.model import PLADNet
 from plad.pbest import PBest
-from plad.search import infer_programs
+from plad.search import infer_batched
 from plad.train import TrainConfig, fit
 
 log = logging.getLogger(__name__)
@@ -64,25 +63,16 @@ class FinetuneConfig:
 
 
 def mean_metric(model: PLADNet, domain: Domain, shapes: np.ndarray, beam: int, batch: int) -> float:
-    device = next(model.parameters()).device
-    values = [infer_programs(model, domain, torch.from_numpy(shapes[i:i + batch]).to(device), beam).values
-              for i in range(0, len(shapes), batch)]
-    return float(torch.cat(values).mean())
+    return float(infer_batched(model, domain, shapes, beam, batch, desc="validate")[0].mean())
 
 
 def infer_into_pbest(model: PLADNet, domain: Domain, shapes: np.ndarray, pbest: PBest, beam: int,
                      batch: int, desc: str = "infer") -> dict[str, float]:
     """Beam search over all training shapes; offer each best-of-beam program to P_BEST."""
-    device = next(model.parameters()).device
     pbest.start_round()
-    stats = None
-    improved = 0.0
-    for start in tqdm(range(0, len(shapes), batch), desc=desc, unit="batch", disable=None):
-        idx = np.arange(start, min(start + batch, len(shapes)))
-        inferred = infer_programs(model, domain, torch.from_numpy(shapes[idx]).to(device), beam)
-        stats = pbest.update(idx, inferred.programs, inferred.values.cpu().numpy(), inferred.shapes.cpu().numpy())
-        improved += stats.improved * len(idx)
-    return {"pbest_mean": stats.mean if stats else math.nan, "pbest_improved": improved / max(len(shapes), 1)}
+    values, programs, executions = infer_batched(model, domain, shapes, beam, batch, desc=desc)
+    stats = pbest.update(np.arange(len(shapes)), programs, values, executions)
+    return {"pbest_mean": stats.mean, "pbest_improved": stats.improved}
 
 
 def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shapes: np.ndarray,

@@ -193,13 +193,6 @@ class TokenTable:
                 f"program is incomplete: {' '.join(stack)} still expected after the last token",
                 position=len(ids))
 
-    def is_valid(self, ids: Sequence[int]) -> bool:
-        try:
-            self.check(ids)
-        except ProgramError:
-            return False
-        return True
-
     # ---- batched (decoding) API ------------------------------------------------
     def _t(self, device: torch.device) -> dict[str, torch.Tensor]:
         """Per-token tensors: pops (top first, -1 padded), push ids, depth and cost deltas."""

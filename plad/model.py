@@ -223,12 +223,8 @@ def reorder_caches(caches: list, index: torch.Tensor) -> list:
     return [(k.index_select(0, index), v.index_select(0, index)) for k, v in caches]
 
 
-def build_model(cfg: ModelConfig) -> PLADNet:
-    return PLADNet(cfg)
-
-
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-__all__ = ["ModelConfig", "PLADNet", "build_model", "count_parameters", "reorder_caches"]
+__all__ = ["ModelConfig", "PLADNet", "count_parameters", "reorder_caches"]

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+from tqdm import tqdm
 
 from plad.domains.base import Domain
 from plad.grammar import TokenTable
@@ -133,6 +135,23 @@ def infer_programs(model: PLADNet, domain: Domain, targets: torch.Tensor, beam: 
     rows = torch.arange(B, device=device)
     programs = [result.program(b, int(best[b])) for b in range(B)]
     return Inferred(programs, best_value, executed[rows, best], result)
+
+
+def infer_batched(model: PLADNet, domain: Domain, targets: np.ndarray, beam: int, batch_size: int,
+                  desc: str = "infer") -> tuple[np.ndarray, list[list[int]], np.ndarray]:
+    """:func:`infer_programs` over many shapes in batches, with a progress bar.
+
+    targets bool (N, *shape) -> (metric values (N,), best programs, executions bool (N, *shape)).
+    """
+    device = next(model.parameters()).device
+    values, programs, shapes = [], [], []
+    for start in tqdm(range(0, len(targets), batch_size), desc=desc, unit="batch", disable=None):
+        inferred = infer_programs(model, domain, torch.from_numpy(targets[start:start + batch_size]).to(device), beam)
+        values.append(inferred.values.cpu().numpy())
+        programs.extend(inferred.programs)
+        shapes.append(inferred.shapes.cpu().numpy())
+    return (np.concatenate(values) if values else np.zeros(0), programs,
+            np.concatenate(shapes) if shapes else np.zeros((0, *domain.shape), bool))
 
 
 @torch.no_grad()

@@ -56,12 +56,6 @@ class Domain(abc.ABC):
         same device.
         """
 
-    def execute_ids(self, programs: Sequence[Sequence[int]], device: str | torch.device = "cpu") -> torch.Tensor:
-        """Convenience: execute a list of token-id lists (validated first)."""
-        for ids in programs:
-            self.check(ids)
-        return self.execute(pad_programs(programs, device=device))
-
     # -- synthetic data ----------------------------------------------------------------
     @abc.abstractmethod
     def sample(self, n: int, generator: np.random.Generator) -> list[list[int]]:

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from plad.fsutil import atomic_write_text
 from plad.stages import stage_main
@@ -43,23 +42,6 @@ class EvaluateConfig:
     out_dir: str = "results/sp/csg2d"
 
 
-def evaluate_shapes(model, domain, targets: np.ndarray, beam: int, batch_size: int,
-                    desc: str = "evaluate") -> tuple[np.ndarray, list[list[int]], np.ndarray]:
-    """(metric values (N,), best programs, executions (N, *shape)) for bool targets (N, *shape)."""
-    from plad.search import infer_programs
-
-    device = next(model.parameters()).device
-    values, programs, shapes = [], [], []
-    for start in tqdm(range(0, len(targets), batch_size), desc=desc, unit="batch", disable=None):
-        batch = torch.from_numpy(targets[start:start + batch_size]).to(device)
-        inferred = infer_programs(model, domain, batch, beam)
-        values.append(inferred.values.cpu().numpy())
-        programs.extend(inferred.programs)
-        shapes.append(inferred.shapes.cpu().numpy())
-    return (np.concatenate(values) if values else np.zeros(0), programs,
-            np.concatenate(shapes) if shapes else np.zeros((0, *domain.shape), bool))
-
-
 def grid_indices(n: int, k: int) -> np.ndarray:
     """A fixed, evenly spaced set of k of n shapes (the same for every method)."""
     return np.unique(np.linspace(0, n - 1, num=min(k, n)).round().astype(int)) if n else np.zeros(0, int)
@@ -67,8 +49,9 @@ def grid_indices(n: int, k: int) -> np.ndarray:
 
 def evaluate(cfg: EvaluateConfig) -> dict:
     from plad.checkpoint import load_model
+    from plad.device import resolve_device
     from plad.domains import get_domain
-    from plad.stages.pretrain import resolve_device
+    from plad.search import infer_batched
     from plad.stages.prepare import load_prepared
     from plad.viz import pair_grid, save_png
 
@@ -87,8 +70,8 @@ def evaluate(cfg: EvaluateConfig) -> dict:
         if cfg.limit is not None:
             targets = targets[: cfg.limit]
         start = time.monotonic()
-        values, programs, shapes = evaluate_shapes(model, domain, targets, cfg.beam, cfg.batch_size,
-                                                   desc=f"{cfg.method} {split} beam {cfg.beam}")
+        values, programs, shapes = infer_batched(model, domain, targets, cfg.beam, cfg.batch_size,
+                                                 desc=f"{cfg.method} {split} beam {cfg.beam}")
         seconds = time.monotonic() - start
         report[split] = {"mean": round(float(values.mean()), 6), "n": int(len(values)),
                          "seconds": round(seconds, 1), "shapes_per_second": round(len(values) / max(seconds, 1e-9), 2)}

@@ -23,7 +23,8 @@ import torch
 
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
-from plad.domains.base import split_padding
+from plad.device import resolve_device
+from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
 from plad.stages import stage_main
 from plad.model import ModelConfig, PLADNet, count_parameters
@@ -56,16 +57,6 @@ class PretrainConfig:
     val_metric_shapes: int = 200
     model: ModelSection = field(default_factory=ModelSection)
     train: TrainConfig = field(default_factory=TrainConfig)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        from plad.device import default_device
-
-        return default_device()
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: cuda was requested but no CUDA device is available")
-    return torch.device(name)
 
 
 def model_config(domain, section_cfg: ModelSection) -> ModelConfig:
@@ -126,8 +117,6 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
             tot, acc, n = tot + float(loss) * k, acc + float(a) * k, n + k
         shapes = torch.cat([b[0] for b in val_batches])[: cfg.val_metric_shapes]
         decoded = greedy_decode(m, domain.tokens, shapes)
-        from plad.domains.base import pad_programs
-
         values = metric(domain.execute(pad_programs(decoded, device=device)), shapes)
         return {"val_loss": tot / n, "val_acc": acc / n, f"val_{metric.name}": float(values.mean())}
 
