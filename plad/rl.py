@@ -17,9 +17,7 @@ import torch
 
 from plad.domains.base import Domain
 from plad.model import PLADNet
-
-NEG = float("-inf")
-
+from plad.sampling import NEG, ancestral_sample
 
 @dataclass
 class RLConfig:
@@ -42,29 +40,11 @@ def reward(domain: Domain, values: torch.Tensor) -> torch.Tensor:
     return (1 - values / diagonal).clamp(0, 1) ** 20
 
 
-@torch.no_grad()
 def sample_programs(model: PLADNet, domain: Domain, shapes: torch.Tensor,
                     generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Ancestral sampling under the grammar mask -> (tokens (N, L) long, lengths (N,))."""
-    table = domain.tokens
-    n, L = shapes.shape[0], table.max_len
-    logits, caches = model.start(model.encode(shapes))
-    state = table.initial_state(n, shapes.device)
-    tokens = torch.zeros(n, L, dtype=torch.long, device=shapes.device)
-    lengths = torch.zeros(n, dtype=torch.long, device=shapes.device)
-    for pos in range(L):
-        live = ~state.done
-        if not bool(live.any()):
-            break
-        probs = torch.softmax(logits.float().masked_fill(~table.mask(state), NEG), -1)
-        probs = torch.where(live[:, None], probs, torch.full_like(probs, 1.0 / probs.shape[1]))
-        tok = torch.multinomial(probs, 1, generator=generator)[:, 0]
-        tokens[:, pos] = torch.where(live, tok, tokens[:, pos])
-        lengths += live.long()
-        state = table.advance(state, tok)
-        if pos + 1 < L:
-            logits, caches = model.step(tok, caches, pos + 1)
-    return tokens, lengths
+    """Ancestral sampling of p(z|x) under the grammar mask -> (tokens (N, L) long, lengths (N,))."""
+    with torch.no_grad():
+        return ancestral_sample(model, domain.tokens, model.encode(shapes), generator)
 
 
 def masked_log_probs(model: PLADNet, domain: Domain, shapes: torch.Tensor, tokens: torch.Tensor,

@@ -11,6 +11,7 @@ from plad.finetune import FinetuneConfig, finetune
 from plad.model import ModelConfig, PLADNet
 from plad.pbest import PBest
 from plad.train import TrainConfig
+from plad.ws import WSConfig, new_generator, sample_dataset, train_generator
 
 DOMAIN = get_domain("csg2d")
 
@@ -29,15 +30,16 @@ def shapes():
     return x[:48], x[48:]
 
 
-def config(method="lest+st", rounds=2):
-    return FinetuneConfig(method=method, infer_beam=2, infer_batch=24, val_beam_epoch=1, val_beam_round=2,
+def config(rounds=2):
+    return FinetuneConfig(infer_beam=2, infer_batch=24, val_beam_epoch=1, val_beam_round=2,
                           max_rounds=rounds, round_patience=100,
-                          train=TrainConfig(batch_size=16, lr=1e-3, steps_per_epoch=3, max_epochs=2, patience=5))
+                          train=TrainConfig(batch_size=16, lr=1e-3, steps_per_epoch=3, max_epochs=2, patience=5),
+                          ws=WSConfig(latent=8, hidden=16, batch_size=16, max_epochs=3, sample_batch=64))
 
 
 def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
     train, val = shapes
-    summary = finetune(tiny_model(), DOMAIN, train, val, config(), tmp_path)
+    summary = finetune(tiny_model(), DOMAIN, train, val, "lest+st", config(), tmp_path)
     assert summary["rounds"] == 2 and summary["stopped"] == "max_rounds"
     state = json.loads((tmp_path / "state.json").read_text())
     means = [r["pbest_mean"] for r in state["history"][1:]]
@@ -48,11 +50,13 @@ def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
     assert np.array_equal(again, pbest.executions)
 
 
-def test_resume_after_a_kill_continues_identically(tmp_path, shapes):
+@pytest.mark.parametrize("method", ["lest+st", "lest+st+ws"])
+def test_resume_after_a_kill_continues_identically(tmp_path, shapes, method):
     train, val = shapes
-    finetune(tiny_model(), DOMAIN, train, val, config(rounds=2), tmp_path / "straight")
-    finetune(tiny_model(), DOMAIN, train, val, config(rounds=1), tmp_path / "killed")   # stops after round 1
-    finetune(tiny_model(seed=5), DOMAIN, train, val, config(rounds=2), tmp_path / "killed")  # the same command again
+    finetune(tiny_model(), DOMAIN, train, val, method, config(rounds=2), tmp_path / "straight")
+    finetune(tiny_model(), DOMAIN, train, val, method, config(rounds=1), tmp_path / "killed")  # stops after round 1
+    # the same command again, with another initial model: everything comes from disk
+    finetune(tiny_model(seed=5), DOMAIN, train, val, method, config(rounds=2), tmp_path / "killed")
     a = torch.load(tmp_path / "straight" / "current.pt", weights_only=False)["state_dict"]
     b = torch.load(tmp_path / "killed" / "current.pt", weights_only=False)["state_dict"]
     for k in a:
@@ -62,6 +66,38 @@ def test_resume_after_a_kill_continues_identically(tmp_path, shapes):
     assert np.array_equal(pa.programs, pb.programs)
 
 
-def test_wake_sleep_is_refused_until_it_exists(tmp_path, shapes):
-    with pytest.raises(NotImplementedError):
-        finetune(tiny_model(), DOMAIN, *shapes, config(method="lest+st+ws"), tmp_path)
+def test_wake_sleep_generator_learns_and_samples_unique_nonempty_programs(shapes):
+    train, _ = shapes
+    model = tiny_model()
+    pbest = PBest(len(train), DOMAIN.shape, DOMAIN.tokens.max_len, DOMAIN.metric)
+    progs = DOMAIN.sample(len(train), np.random.default_rng(3))
+    pbest.update(np.arange(len(train)), progs, np.ones(len(train)), DOMAIN.execute(pad_programs(progs)).numpy())
+    cfg = WSConfig(latent=8, hidden=16, batch_size=16, max_epochs=1, sample_batch=64)
+    gen = new_generator(model, cfg)
+    first = train_generator(gen, pbest, cfg, seed=0)["ws_loss"]
+    later = train_generator(gen, pbest, WSConfig(**{**cfg.__dict__, "max_epochs": 15}), seed=1)["ws_loss"]
+    assert later < first  # the ELBO loss goes down on P_BEST
+    programs, executions, stats = sample_dataset(gen, DOMAIN, 40, cfg, seed=0)
+    assert len(programs) == 40 and stats["ws_unique"] == 1.0
+    assert len({p.tobytes() for p in programs}) == 40
+    rows = [p[p >= 0].tolist() for p in programs]
+    for r in rows:
+        DOMAIN.check(r)
+    assert executions.reshape(40, -1).any(1).all()
+    # WS pairs execute exactly to their shapes
+    assert np.array_equal(DOMAIN.execute(pad_programs(rows)).numpy(), executions)
+
+
+def test_wake_sleep_rounds_write_generator_and_samples(tmp_path, shapes):
+    train, val = shapes
+    summary = finetune(tiny_model(), DOMAIN, train, val, "lest+st+ws", config(rounds=1), tmp_path)
+    assert summary["rounds"] == 1
+    assert (tmp_path / "ws_generator.pt").exists() and (tmp_path / "ws_round_001.npz").exists()
+    row = json.loads((tmp_path / "state.json").read_text())["history"][1]
+    assert row["ws_unique"] > 0 and 0 <= row["ws_empty_share"] <= 1
+
+
+def test_budget_stops_rounds(tmp_path, shapes):
+    train, val = shapes
+    summary = finetune(tiny_model(), DOMAIN, train, val, "st", config(rounds=50), tmp_path, max_minutes=1e-4)
+    assert summary["stopped"] == "budget" and summary["rounds"] == 1
