@@ -23,7 +23,7 @@ class ConfigError(ValueError):
 
 
 #: Top-level keys a params file may have: ``profile`` and one section per stage.
-SECTIONS = {"profile", "prepare", "synthesize", "pretrain", "evaluate"}
+SECTIONS = {"profile", "prepare", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows"}
 
 
 def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
@@ -82,6 +82,12 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
         if dataclasses.is_dataclass(hint):
             values[key] = build(hint, value, f"{where}.{key}", source)
             continue
+        if typing.get_origin(hint) is dict and dataclasses.is_dataclass(typing.get_args(hint)[-1]):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: {where}.{key} must be a mapping, got {value!r}")
+            inner = typing.get_args(hint)[-1]
+            values[key] = {str(k): build(inner, v, f"{where}.{key}.{k}", source) for k, v in value.items()}
+            continue
         if not _check_type(value, hint):
             raise ConfigError(f"{source}: {where}.{key} = {value!r} should be of type "
                               f"{getattr(hint, '__name__', hint)}")
@@ -94,3 +100,28 @@ def section(params: dict[str, Any], name: str, cls: type[T], source: str = "para
     if name not in params:
         raise ConfigError(f"{source}: section {name!r} is missing")
     return build(cls, params[name], name, source)
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str], where: str) -> dict[str, Any]:
+    """``["a.b=3", "c=x"]`` applied to a copy of section ``raw``; values are parsed as YAML.
+
+    Keys are checked later by :func:`build`, so a typo is still an error.
+    """
+    import copy
+
+    out = copy.deepcopy(raw) if raw is not None else {}
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        parts = key.strip().split(".")
+        node = out
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                node[p] = {}
+            node = node[p]
+        try:
+            node[parts[-1]] = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: value is not valid YAML") from None
+    return out
