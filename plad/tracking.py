@@ -284,7 +284,7 @@ class StageRun:
         mlflow = _mlflow()
         uri = tracking_uri()
         client = mlflow.MlflowClient()
-        experiment_id = _experiment_id(client, uri, self.experiment)
+        experiment_id = self._exp_id = _experiment_id(client, uri, self.experiment)
         tags = self._tags = self.tags
         previous = self._resumable(client, uri, experiment_id)
         nested = mlflow.active_run() is not None   # e.g. a flow's own run around the stage
@@ -377,7 +377,9 @@ class StageRun:
         base = {k: v for k, v in (self._tags or self.tags).items()
                 if k in ("plad.stage", "plad.domain", "plad.method", "plad.pipeline")}
         extra = {(k if "." in k else f"plad.{k}"): v for k, v in tags.items()}
-        child = mlflow.start_run(nested=True, run_name=name, tags=_tag_values({**base, **extra}))
+        # children live in the stage run's experiment (not the fluent API's default one)
+        child = mlflow.start_run(nested=True, run_name=name, experiment_id=self._exp_id,
+                                 tags=_tag_values({**base, **extra}))
         child_id = child.info.run_id
         self._stack.append(child_id)
         status = "FAILED"

@@ -192,6 +192,7 @@ def test_nested_round_runs(store, client, tmp_path):
         child = client.get_run(cid)
         assert child.info.status == "FINISHED"
         assert child.data.tags["mlflow.parentRunId"] == run.run_id
+        assert child.info.experiment_id == parent.info.experiment_id   # found by the same experiment search
         assert child.data.tags["plad.round"] == str(r) and child.data.tags["plad.method"] == "plad"
         assert child.data.metrics == {"val_iou": 0.5 + r, "n_pairs": 10.0 * (r + 1)}
     assert client.get_run(bad.run_id).info.status == "FAILED"
