@@ -1,0 +1,192 @@
+"""The results report: the paper's Table 1 layout, convergence curves, the P_BEST ablation.
+
+Inputs are gathered per method either from the pipeline's files (the
+evaluation ``metrics.json`` and fine-tuning ``state.json``/``summary.json``)
+or from MLflow alone (the ``evaluate`` and ``finetune`` runs' metrics), into
+the same :class:`MethodResult` records, so the report can be rebuilt from
+either. Rendering is a pure function of those records.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: Table 1 of the paper (test set, beam 10): 2D CSG Chamfer distance, 3D IoU x 100.
+PAPER_TABLE = {
+    "csg2d": {"sp": 1.580, "rl": 1.097, "ws": 1.118, "st": 0.841, "lest": 0.976, "lest_st": 0.829,
+              "lest_st_ws": 0.811},
+    "csg3d": {"sp": 41.0, "rl": 53.4, "ws": 67.4, "st": 67.3, "lest": 69.8, "lest_st": 70.8, "lest_st_ws": 74.3},
+    "shapeassembly": {"sp": 37.6, "rl": 50.8, "ws": 57.2, "st": 61.3, "lest": 56.5, "lest_st": 66.0,
+                      "lest_st_ws": 66.4},
+}
+#: Supplement: 2D CSG with P_BEST reset every round.
+PAPER_PER_ROUND = {"csg2d": {"st": 0.881, "lest": 1.011, "lest_st": 0.853, "lest_st_ws": 0.845}}
+
+LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
+          "lest_st_ws": "LEST+ST+WS"}
+
+
+def label(key: str) -> str:
+    if key in LABELS:
+        return LABELS[key]
+    return key.replace("_per_round", " (per-round)").replace("_", "+").upper().replace("(PER-ROUND)", "(per-round)")
+
+
+@dataclass
+class MethodResult:
+    key: str
+    test: float | None                                # mean test metric (None: not evaluated)
+    curve: list[tuple[float, float]] = field(default_factory=list)   # (training seconds, validation metric)
+    train_seconds: float | None = None
+    val_best: float | None = None                     # validation metric of the selected model
+    rounds: int | None = None
+    stopped: str | None = None
+
+
+def scale(domain: str) -> float:
+    """Table values: IoU is reported x 100, Chamfer distance as is."""
+    from plad.domains import get_domain
+
+    return 100.0 if get_domain(domain).metric.higher_is_better else 1.0
+
+
+# -- gathering ------------------------------------------------------------------------------------
+def from_files(domain: str, keys: list[str], results_dir: str | Path, finetune_dir: str | Path) -> list[MethodResult]:
+    out = []
+    for key in keys:
+        metrics = Path(results_dir) / "eval" / key / domain / "metrics.json"
+        test = json.loads(metrics.read_text())["test"]["mean"] if metrics.exists() else None
+        res = MethodResult(key, test)
+        state_file = Path(finetune_dir) / domain / key / "state.json"
+        if state_file.exists():
+            state = json.loads(state_file.read_text())
+            res.curve = [(float(r["seconds"]), float(next(v for k, v in r.items() if k.startswith("val_"))))
+                         for r in state["history"]]
+        summary = Path(results_dir) / "finetune" / domain / f"{key}.json"
+        if summary.exists():
+            s = json.loads(summary.read_text())
+            res.stopped, res.train_seconds = s.get("stopped"), s.get("train_seconds")
+            res.rounds = s.get("rounds", s.get("epochs"))
+            res.val_best = s.get(f"val_{s.get('metric')}")
+        out.append(res)
+    return out
+
+
+def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> list[MethodResult]:
+    """The same records from the MLflow store alone (latest finished run per stage and method)."""
+    import mlflow
+
+    from plad.domains import get_domain
+    from plad.tracking import DEFAULT_EXPERIMENT, tracking_uri
+
+    mlflow.set_tracking_uri(tracking_uri())
+    client = mlflow.MlflowClient()
+    exp = client.get_experiment_by_name(experiment or DEFAULT_EXPERIMENT)
+    if exp is None:
+        raise LookupError(f"no MLflow experiment {experiment or DEFAULT_EXPERIMENT!r} at {tracking_uri()}")
+    metric = get_domain(domain).metric.name
+
+    def latest(stage: str, key: str):
+        runs = client.search_runs([exp.experiment_id],
+                                  f"tags.`plad.stage` = '{stage}' and tags.`plad.method` = '{key}' and "
+                                  f"tags.`plad.domain` = '{domain}' and attributes.status = 'FINISHED'",
+                                  order_by=["attributes.end_time DESC"], max_results=1)
+        return runs[0] if runs else None
+
+    out = []
+    for key in keys:
+        ev = latest("evaluate", key)
+        res = MethodResult(key, ev.data.metrics.get(f"test_{metric}") if ev else None)
+        ft = latest("finetune", key)
+        if ft is not None:
+            hist = client.get_metric_history(ft.info.run_id, "val_at_seconds")
+            res.curve = sorted((float(m.step), float(m.value)) for m in hist)
+            m = ft.data.metrics
+            res.train_seconds = m.get("train_seconds")
+            res.rounds = int(m["rounds"]) if "rounds" in m else (int(m["epochs"]) if "epochs" in m else None)
+            res.stopped = ft.data.tags.get("plad.stopped")
+            res.val_best = m.get(f"val_{metric}")
+        out.append(res)
+    return out
+
+
+# -- rendering ------------------------------------------------------------------------------------
+def _fmt(v: float | None, digits: int) -> str:
+    return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def table_markdown(domain: str, results: list[MethodResult], per_round: dict[str, str],
+                   profile: str | None = None) -> str:
+    from plad.domains import get_domain
+
+    metric = get_domain(domain).metric
+    k = scale(domain)
+    digits = 3 if k == 1 else 1
+    name = f"{metric.name} x100" if k != 1 else metric.name
+    better = "higher" if metric.higher_is_better else "lower"
+    paper = PAPER_TABLE.get(domain, {})
+    by_key = {r.key: r for r in results}
+    lines = [f"# Results: {domain}" + (f" ({profile} profile)" if profile else ""), "",
+             f"Test set, best of beam 10 by the metric; {name}, {better} is better. "
+             "The paper's numbers (Table 1) are given for reference.", "",
+             f"| method | ours ({name}) | paper | fine-tuning time (min) | rounds / epochs | stopped |",
+             "|---|---|---|---|---|---|"]
+    for r in results:
+        if r.key in per_round.values():
+            continue
+        lines.append(f"| {label(r.key)} | {_fmt(r.test * k if r.test is not None else None, digits)} | "
+                     f"{_fmt(paper.get(r.key), digits)} | "
+                     f"{_fmt(r.train_seconds / 60 if r.train_seconds is not None else None, 1)} | "
+                     f"{r.rounds if r.rounds is not None else '—'} | {r.stopped or '—'} |")
+    if per_round:
+        ref = PAPER_PER_ROUND.get(domain, {})
+        lines += ["", "## P_BEST: all-time vs per-round (supplement)", "",
+                  f"| method | all-time (ours) | per-round (ours) | all-time (paper) | per-round (paper) |",
+                  "|---|---|---|---|---|"]
+        for a, b in per_round.items():
+            ra, rb = by_key.get(a), by_key.get(b)
+            va = ra.test * k if ra and ra.test is not None else None
+            vb = rb.test * k if rb and rb.test is not None else None
+            lines.append(f"| {label(a)} | {_fmt(va, digits)} | {_fmt(vb, digits)} | "
+                         f"{_fmt(paper.get(a), digits)} | {_fmt(ref.get(a), digits)} |")
+    return "\n".join(lines) + "\n"
+
+
+def convergence_png(domain: str, results: list[MethodResult], path: str | Path) -> None:
+    """Validation metric against fine-tuning wall-clock time, one line per method."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from plad.domains import get_domain
+    from plad.fsutil import atomic_write
+
+    metric = get_domain(domain).metric
+    k = scale(domain)
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
+    for r in results:
+        if len(r.curve) < 2:
+            continue
+        t, v = zip(*r.curve)
+        # the selected model so far: the running best, as used for the table
+        best, shown = [], None
+        for x in v:
+            shown = x if shown is None or metric.better(x, shown) else shown
+            best.append(shown * k)
+        ax.step([s / 60 for s in t], best, where="post", label=label(r.key), marker="o", markersize=3)
+    sp = next((r for r in results if r.curve), None)
+    if sp is not None:
+        ax.axhline(sp.curve[0][1] * k, color="grey", linestyle=":", label="SP (start)")
+    ax.set_xlabel("fine-tuning wall-clock time (min)")
+    ax.set_ylabel(f"validation {metric.name}" + (" x100" if k != 1 else "") + " (best so far)")
+    ax.set_title(f"{domain}: convergence")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    import io
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write(path, lambda fh: fh.write(buf.getvalue()))

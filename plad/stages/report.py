@@ -1,0 +1,126 @@
+"""Stage ``report``: ``results/table.md``, ``results/convergence.png`` and the MLflow champion.
+
+The table has the paper's Table 1 layout (one row per method, SP first) with
+the paper's numbers beside ours, and the supplement's P_BEST all-time vs
+per-round comparison. ``source: mlflow`` rebuilds the same report from the
+MLflow store alone. With ``register: true`` the model with the best
+validation metric (over SP and every fine-tuned method) is registered as
+``plad-<domain>`` and gets the ``champion`` alias.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from plad.fsutil import atomic_write_text
+from plad.stages import stage_main
+
+
+@dataclass
+class ReportConfig:
+    domain: str = "csg2d"
+    #: rows of the table, in order (keys of finetune.methods, plus "sp")
+    methods: list[str] = field(default_factory=lambda: ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws"])
+    #: all-time method key -> its per-round variant, for the P_BEST comparison
+    per_round: dict[str, str] = field(default_factory=lambda: {"lest_st": "lest_st_per_round"})
+    results_dir: str = "results"
+    finetune_dir: str = "runs/finetune"
+    pretrain_checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    out_dir: str = "results"
+    #: where the numbers come from: "files" (the pipeline's outputs) or "mlflow"
+    source: str = "files"
+    #: register the best model (by validation) in the MLflow registry with alias "champion"
+    register: bool = True
+    profile: str | None = None
+
+
+def gather(cfg: ReportConfig):
+    from plad.config import ConfigError
+    from plad.report import from_files, from_mlflow
+
+    keys = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values()]))
+    if cfg.source == "files":
+        return from_files(cfg.domain, keys, cfg.results_dir, cfg.finetune_dir)
+    if cfg.source == "mlflow":
+        return from_mlflow(cfg.domain, keys)
+    raise ConfigError(f"report.source {cfg.source!r}: expected files or mlflow")
+
+
+def champion(cfg: ReportConfig, results) -> tuple[str, float] | None:
+    """(method key, validation value) of the selected model with the best validation metric.
+
+    SP competes with its own validation value, the first point of every curve.
+    """
+    from plad.domains import get_domain
+
+    metric = get_domain(cfg.domain).metric
+    candidates = []
+    for r in results:
+        if r.key in cfg.per_round.values():
+            continue
+        if r.curve:
+            candidates.append(("sp", r.curve[0][1]))
+        if r.val_best is not None and r.key != "sp":
+            candidates.append((r.key, r.val_best))
+    best = None
+    for key, v in candidates:
+        if best is None or metric.better(v, best[1]):
+            best = (key, v)
+    return best
+
+
+def report(cfg: ReportConfig) -> dict:
+    from plad.report import convergence_png, table_markdown
+
+    results = gather(cfg)
+    missing = [r.key for r in results if r.test is None]
+    if missing:
+        from plad.data import DataError
+        where = "MLflow" if cfg.source == "mlflow" else cfg.results_dir
+        raise DataError(where, f"no test evaluation for method(s) {', '.join(missing)}")
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "table.md", table_markdown(cfg.domain, results, cfg.per_round, cfg.profile))
+    convergence_png(cfg.domain, [r for r in results if r.key not in cfg.per_round.values()],
+                    out / "convergence.png")
+    summary = {"domain": cfg.domain, "source": cfg.source,
+               "test": {r.key: r.test for r in results},
+               "train_seconds": {r.key: r.train_seconds for r in results}}
+    best = champion(cfg, results)
+    if best is not None:
+        summary["champion"] = {"method": best[0], "val": best[1]}
+    atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def tracked_report(cfg: ReportConfig) -> dict:
+    from plad.tracking import StageRun, set_champion
+
+    out = Path(cfg.out_dir)
+    with StageRun("report", cfg.domain, asdict(cfg), out / ".report_run") as run:
+        summary = report(cfg)
+        for name in ["table.md", "convergence.png", "report.json"]:
+            run.log_artifact(out / name)
+        if cfg.register and "champion" in summary:
+            key = summary["champion"]["method"]
+            ckpt = Path(cfg.pretrain_checkpoint) if key == "sp" else Path(cfg.finetune_dir) / cfg.domain / key / "best.pt"
+            name = f"plad-{cfg.domain}"
+            uri = run.log_model(ckpt, registered_name=name)
+            version = uri.rsplit("/", 1)[-1]
+            set_champion(name, version)
+            import mlflow
+            client = mlflow.MlflowClient()
+            client.set_model_version_tag(name, version, "plad.method", key)
+            client.set_model_version_tag(name, version, "plad.test", str(summary["test"].get(key)))
+            summary["champion"].update(model=f"models:/{name}@champion", version=version)
+            atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main("report", ReportConfig, tracked_report, argv, __doc__.splitlines()[0])
+
+if __name__ == "__main__":
+    sys.exit(main())
