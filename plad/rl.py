@@ -172,7 +172,7 @@ def rl_finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_sh
         torch.manual_seed(seed * 1_000_003 + epoch)   # dropout masks: a resumed epoch draws the same
         totals: dict[str, float] = {}
         for _ in range(cfg.steps_per_epoch):
-            idx = np.sort(rng.choice(len(train_shapes), size=cfg.batch_size, replace=False))
+            idx = np.sort(rng.choice(len(train_shapes), size=cfg.batch_size, replace=cfg.batch_size > len(train_shapes)))
             step = learner.step(torch.from_numpy(train_shapes[idx]).to(device))
             for k, v in step.items():
                 totals[k] = totals.get(k, 0.0) + v / cfg.steps_per_epoch

@@ -40,12 +40,12 @@ def smoke_run(tmp_path_factory, datasets_dir):
 
 def test_smoke_repro_writes_metrics_and_grid(smoke_run):
     work, _, _ = smoke_run
-    metrics = json.loads((work / "results" / "sp" / "csg2d" / "metrics.json").read_text())
+    metrics = json.loads((work / "results" / "eval" / "sp" / "csg2d" / "metrics.json").read_text())
     assert metrics["method"] == "sp" and metrics["metric"] == "chamfer" and metrics["beam"] == 10
     assert metrics["test"]["n"] == 20 and 0 <= metrics["test"]["mean"] <= 16
-    grid = work / "results" / "sp" / "csg2d" / "grid.png"
+    grid = work / "results" / "eval" / "sp" / "csg2d" / "grid.png"
     assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    lines = (work / "results" / "sp" / "csg2d" / "test_programs.csv").read_text().splitlines()
+    lines = (work / "results" / "eval" / "sp" / "csg2d" / "test_programs.csv").read_text().splitlines()
     assert len(lines) == 21 and lines[0] == "index,chamfer,program"
     summary = json.loads((work / "runs" / "pretrain" / "csg2d" / "summary.json").read_text())
     assert summary["epochs"] == 2
@@ -58,9 +58,16 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
     runs = mlflow.search_runs(experiment_names=["plad"])
     stages = set(runs["tags.plad.stage"])
-    assert {"pretrain", "evaluate"} <= stages
+    assert {"pretrain", "evaluate", "finetune", "report"} <= stages
     assert (runs["status"] == "FINISHED").all()
     assert runs["tags.plad.pipeline"].nunique() == 1  # one repro, one group
+    finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
+    assert set(finetuned["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round"}
+    rounds = runs[runs["tags.mlflow.parentRunId"].isin(finetuned["run_id"])]
+    ws = finetuned[finetuned["tags.plad.method"] == "lest_st_ws"].iloc[0]
+    ws_rounds = rounds[rounds["tags.mlflow.parentRunId"] == ws["run_id"]]
+    assert sorted(ws_rounds["tags.plad.round"]) == ["1", "2"]       # one nested run per round
+    assert ws_rounds["metrics.pbest_mean"].notna().all() and ws_rounds["metrics.pbest_improved"].notna().all()
     pre = runs[runs["tags.plad.stage"] == "pretrain"].iloc[0]
     assert pre["params.train.batch_size"] == "32"
     client = mlflow.tracking.MlflowClient()
@@ -76,3 +83,41 @@ def test_smoke_repro_is_up_to_date_afterwards(smoke_run):
     work, env, _ = smoke_run
     res = run(["dvc", "status"], work, env)
     assert "changed" not in res.stdout
+
+
+METHODS = ["rl", "ws", "st", "lest", "lest_st", "lest_st_ws"]
+
+
+def test_smoke_repro_writes_the_whole_table(smoke_run):
+    work, _, _ = smoke_run
+    table = (work / "results" / "table.md").read_text()
+    rows = [line.split("|")[1].strip() for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert rows[:8] == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS"]
+    assert "| LEST+ST | " in table.split("all-time vs per-round")[1]
+    for key in ["sp", *METHODS, "lest_st_per_round"]:
+        m = json.loads((work / "results" / "eval" / key / "csg2d" / "metrics.json").read_text())
+        assert m["method"] == key and m["test"]["n"] == 20
+        assert f"| {m['test']['mean']:.3f} |" in table or key == "lest_st_per_round"
+    assert (work / "results" / "convergence.png").read_bytes()[:4] == b"\x89PNG"
+    for key in METHODS:
+        state = json.loads((work / "runs" / "finetune" / "csg2d" / key / "state.json").read_text())
+        assert len(state["history"]) == 3  # start + 2 rounds (RL: 2 epochs)
+
+
+def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
+    work, env, _ = smoke_run
+    out = tmp_path / "from_mlflow"
+    run(["python", "-m", "plad.stages.report", "--params", "params.yaml", "--set", "source=mlflow",
+         "--set", "register=false", "--set", f"out_dir={out}", "--set", "results_dir=/nonexistent"], work, env)
+    assert (out / "table.md").read_text() == (work / "results" / "table.md").read_text()
+
+
+def test_report_registers_the_champion(smoke_run):
+    work, env, _ = smoke_run
+    import mlflow
+
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    report = json.loads((work / "results" / "report.json").read_text())
+    version = mlflow.MlflowClient().get_model_version_by_alias("plad-csg2d", "champion")
+    assert str(version.version) == report["champion"]["version"]
+    assert version.tags["plad.method"] == report["champion"]["method"]

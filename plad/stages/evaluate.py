@@ -39,7 +39,7 @@ class EvaluateConfig:
     grid_shapes: int = 16
     device: str = "auto"
     threads: int | None = None
-    out_dir: str = "results/sp/csg2d"
+    out_dir: str = "results/eval/sp/csg2d"
 
 
 def grid_indices(n: int, k: int) -> np.ndarray:

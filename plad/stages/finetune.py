@@ -1,0 +1,175 @@
+"""Stage ``finetune``: fine-tune the pretrained p(z|x) on the real training shapes with one method.
+
+``--set key=<name>`` picks an entry of ``finetune.methods``: a PLAD mixture
+(``st``, ``lest``, ``ws``, ``lest+st``, ``lest+st+ws``, with optional weights)
+or ``rl`` (the REINFORCE baseline), and the P_BEST mode. Every method gets the
+same wall-clock budget (``max_minutes``) and the same model selection on the
+validation shapes. Writes to ``out_dir/<domain>/<key>/``: ``best.pt`` (the
+selected model), ``state.json`` (per-round history with wall-clock seconds),
+``summary.json``, and the method's resumable state (P_BEST, generator, ...).
+A killed run, started again, resumes at its last finished round.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from plad.finetune import FinetuneConfig
+from plad.fsutil import atomic_write_text
+from plad.rl import RLConfig
+from plad.stages import stage_main
+
+
+@dataclass
+class MethodConfig:
+    #: "rl" or a PLAD mixture of st / lest / ws, e.g. "lest+st"
+    method: str = "lest+st"
+    #: P_BEST mode of PLAD methods: all-time (the paper's) or per-round (the supplement's ablation)
+    pbest_mode: str = "all-time"
+
+
+@dataclass
+class FinetuneStageConfig:
+    domain: str = "csg2d"
+    #: which entry of ``methods`` this run trains (set per DVC stage)
+    key: str | None = None
+    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    prepared_dir: str = "data/prepared"
+    out_dir: str = "runs/finetune"
+    #: where the run summary is copied for DVC metrics: <summary_dir>/<domain>/<key>.json
+    summary_dir: str = "results/finetune"
+    device: str = "auto"
+    threads: int | None = None
+    seed: int = 0
+    #: use only the first N training / validation shapes (None: all)
+    train_limit: int | None = None
+    val_limit: int | None = None
+    #: wall-clock budget of every method, in minutes (None: none)
+    max_minutes: float | None = None
+    methods: dict[str, MethodConfig] = field(default_factory=dict)
+    plad: FinetuneConfig = field(default_factory=FinetuneConfig)
+    rl: RLConfig = field(default_factory=RLConfig)
+
+
+def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
+    from plad.config import ConfigError
+    from plad.methods import parse_mixture
+    from plad.pbest import MODES
+
+    if cfg.key is None:
+        raise ConfigError(f"finetune.key is not set: choose one of {', '.join(cfg.methods) or '(no methods)'}")
+    if cfg.key not in cfg.methods:
+        raise ConfigError(f"finetune.key {cfg.key!r} is not in finetune.methods ({', '.join(cfg.methods)})")
+    m = cfg.methods[cfg.key]
+    if m.method != "rl":
+        try:
+            parse_mixture(m.method)
+        except ValueError as err:
+            raise ConfigError(f"finetune.methods.{cfg.key}.method: {err}") from None
+    if m.pbest_mode not in MODES:
+        raise ConfigError(f"finetune.methods.{cfg.key}.pbest_mode {m.pbest_mode!r}: one of {', '.join(MODES)}")
+    return m
+
+
+def run_dir(cfg: FinetuneStageConfig) -> Path:
+    return Path(cfg.out_dir) / cfg.domain / str(cfg.key)
+
+
+def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(training shapes, validation shapes) of the real data, limited as configured."""
+    from plad.stages.prepare import load_prepared
+
+    path = Path(cfg.prepared_dir) / f"{cfg.domain}.npz"
+    train, val = load_prepared(path, "train"), load_prepared(path, "val")
+    if cfg.train_limit is not None:
+        train = train[: cfg.train_limit]
+    if cfg.val_limit is not None:
+        val = val[: cfg.val_limit]
+    return train, val
+
+
+def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer=None) -> dict:
+    """Fine-tune one method (a pure function of the config and the files it names)."""
+    from plad.checkpoint import load_model
+    from plad.device import resolve_device
+    from plad.domains import get_domain
+    from plad.finetune import finetune
+    from plad.rl import rl_finetune
+
+    spec = method_of(cfg)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    device = resolve_device(cfg.device)
+    model, name = load_model(cfg.checkpoint, device, expect_domain=cfg.domain)
+    domain = get_domain(name)
+    train, val = load_shapes(cfg)
+    out = run_dir(cfg)
+    torch.manual_seed(cfg.seed)
+    if spec.method == "rl":
+        summary = rl_finetune(model, domain, train, val, cfg.rl, out, max_minutes=cfg.max_minutes, seed=cfg.seed,
+                              on_epoch=(lambda e, row: on_round(e, row)) if on_round else None)
+    else:
+        plad_cfg = FinetuneConfig(**{**cfg.plad.__dict__, "pbest_mode": spec.pbest_mode})
+        summary = finetune(model, domain, train, val, spec.method, plad_cfg, out, max_minutes=cfg.max_minutes,
+                           seed=cfg.seed, infer=infer, on_round=on_round, on_epoch=on_epoch)
+    summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
+               "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
+    text = json.dumps(summary, indent=2) + "\n"
+    atomic_write_text(out / "summary.json", text)
+    atomic_write_text(Path(cfg.summary_dir) / cfg.domain / f"{cfg.key}.json", text)
+    return summary
+
+
+def tracked_finetune(cfg: FinetuneStageConfig, infer=None) -> dict:
+    """:func:`finetune_stage` as one MLflow run, with a nested run per round (or RL epoch)."""
+    from plad.checkpoint import read_checkpoint
+    from plad.tracking import StageRun
+
+    method_of(cfg)
+    read_checkpoint(cfg.checkpoint)  # fail on a bad checkpoint before any MLflow run starts
+    out = run_dir(cfg)
+    params = asdict(cfg)
+    params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only
+    with StageRun("finetune", cfg.domain, params, out, method=cfg.key) as run:
+        epochs: list[tuple[int, dict]] = []
+
+        def on_epoch(rnd: int, epoch: int, metrics: dict) -> None:
+            epochs.append((epoch, metrics))
+
+        def on_round(rnd: int, row: dict) -> None:
+            numbers = {k: float(v) for k, v in row.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+            run.log_metrics(numbers, step=rnd)
+            # the convergence curve: validation metric against training wall-clock seconds
+            value = next(v for k, v in numbers.items() if k.startswith("val_"))
+            run.log_metrics({"val_at_seconds": value}, step=int(round(numbers["seconds"])))
+            with run.nested(f"round_{rnd:03d}", round=rnd) as child:
+                child.log_metrics(numbers, step=rnd)
+                for e, m in epochs:
+                    child.log_metrics({k: float(v) for k, v in m.items() if np.isfinite(v)}, step=e)
+            epochs.clear()
+
+        summary = finetune_stage(cfg, on_round=on_round, on_epoch=on_epoch, infer=infer)
+        state = json.loads((out / "state.json").read_text())
+        start = state["history"][0]   # the pretrained model's validation metric, at 0 s
+        run.log_metrics({"val_at_seconds": next(v for k, v in start.items() if k.startswith("val_"))}, step=0)
+        run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
+        run.set_tags({"plad.stopped": summary["stopped"]})
+        for name in ["summary.json", "state.json", "best.pt"]:
+            run.log_artifact(out / name)
+        final = out / ("learner.pt" if cfg.methods[cfg.key].method == "rl" else "current.pt")
+        if final.exists():
+            run.log_artifact(final, "final")
+        run.log_model(out / "best.pt")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main("finetune", FinetuneStageConfig, tracked_finetune, argv, __doc__.splitlines()[0])
+
+if __name__ == "__main__":
+    sys.exit(main())
