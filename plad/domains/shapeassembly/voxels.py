@@ -11,8 +11,9 @@ corners (:func:`normalization`); the discretized domain's programs already
 live in that centered unit cube and are voxelized as they are.
 
 Speed: instead of testing every voxel against every cuboid, each cuboid only
-tests the voxels inside its own axis-aligned bounding box; all (cuboid,
-voxel) candidates of a whole batch are enumerated in one flat tensor.
+tests the voxels inside its own axis-aligned bounding box, and the three
+projections over that box are sums of three broadcast 1-D vectors (the
+projection is linear in the voxel indices), so no per-voxel gathers.
 """
 from __future__ import annotations
 
@@ -58,38 +59,45 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
     Returns (grids (batch, res, res, res) bool indexed [x, y, z], unique (N,) long:
     voxels of each cuboid that no other cuboid of its shape occupies).
     """
-    dev = cuboids.device
-    c = cuboids.to(torch.float64)
-    n = c.shape[0]
-    grids = torch.zeros(batch * res ** 3, dtype=torch.bool, device=dev)
-    if n == 0:
-        return grids.view(batch, res, res, res), torch.zeros(0, dtype=torch.long, device=dev)
+    c = cuboids.detach().cpu().numpy().astype(np.float64)
+    own = owner.detach().cpu().numpy()
+    n = len(c)
     p = c[:, 0:3]
     u = c[:, 3:12].reshape(n, 3, 3)
-    u = u / u.norm(dim=2, keepdim=True)                                    # (N, 3 axes, 3)
-    half = torch.clamp(c[:, 12:15].abs() / 2, min=min_half) + TOL          # (N, 3)
+    u = u / np.linalg.norm(u, axis=2, keepdims=True)                      # (N, 3 axes, 3)
+    half = np.maximum(np.abs(c[:, 12:15]) / 2, min_half) + TOL             # (N, 3)
     # axis-aligned extent of each cuboid -> inclusive voxel index ranges per axis
-    ext = (half[:, :, None] * u.abs()).sum(1)                              # (N, 3)
-    lo = torch.ceil((p - ext + 0.5) * res - 0.5).clamp(0, res).long()
-    hi = torch.floor((p + ext + 0.5) * res - 0.5).clamp(-1, res - 1).long()
-    size = (hi - lo + 1).clamp(min=0)                                      # (N, 3)
-    count = size.prod(1)
-    # flat enumeration of every (cuboid, voxel in its box) candidate
-    which = torch.repeat_interleave(torch.arange(n, device=dev), count)   # (M,)
-    start = torch.cumsum(count, 0) - count
-    local = torch.arange(which.shape[0], device=dev) - start[which]
-    sx, sy = size[which, 0], size[which, 1]
-    idx = torch.stack([local % sx, (local // sx) % sy, local // (sx * sy)], 1) + lo[which]   # (M, 3)
-    centers = (idx.to(torch.float64) + 0.5) / res - 0.5
-    rel = torch.einsum("mad,md->ma", u[which], centers - p[which])       # (M, 3) coordinates along the axes
-    inside = (rel.abs() <= half[which]).all(1)
-    which, idx = which[inside], idx[inside]
-    flat = owner[which] * res ** 3 + (idx[:, 0] * res + idx[:, 1]) * res + idx[:, 2]
-    grids[flat] = True
+    ext = (half[:, :, None] * np.abs(u)).sum(1)                            # (N, 3)
+    lo = np.clip(np.ceil((p - ext + 0.5) * res - 0.5), 0, res).astype(np.int64)
+    hi = np.clip(np.floor((p + ext + 0.5) * res - 0.5), -1, res - 1).astype(np.int64)
+    centers = (np.arange(res) + 0.5) / res - 0.5                           # (res,) voxel centers per axis
+    count = np.zeros((batch, res, res, res), dtype=np.int16)
+    boxes = []
+    for m in range(n):
+        (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+        if x1 <= x0 or y1 <= y0 or z1 <= z0:
+            boxes.append(None)
+            continue
+        # (c - p) per axis over the box, then the three projections by broadcasting:
+        # proj_a[i, j, k] = dx[i] u_a,x + dy[j] u_a,y + dz[k] u_a,z   (box shape)
+        dx = (centers[x0:x1] - p[m, 0])[:, None, None]
+        dy = (centers[y0:y1] - p[m, 1])[None, :, None]
+        dz = (centers[z0:z1] - p[m, 2])[None, None, :]
+        inside = None
+        for a in range(3):
+            ua = u[m, a]
+            proj = dx * ua[0] + dy * ua[1] + dz * ua[2]
+            ok = np.abs(proj) <= half[m, a]
+            inside = ok if inside is None else inside & ok
+        count[own[m], x0:x1, y0:y1, z0:z1] += inside
+        boxes.append(inside)
     # voxels covered exactly once in their shape belong uniquely to their cuboid
-    cover = torch.bincount(flat, minlength=batch * res ** 3)
-    unique = torch.bincount(which[cover[flat] == 1], minlength=n)
-    return grids.view(batch, res, res, res), unique
+    unique = np.zeros(n, dtype=np.int64)
+    for m, inside in enumerate(boxes):
+        if inside is not None:
+            (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+            unique[m] = int((inside & (count[own[m], x0:x1, y0:y1, z0:z1] == 1)).sum())
+    return torch.from_numpy(count > 0), torch.from_numpy(unique)
 
 
 def voxelize(cuboids: np.ndarray, min_half: float = MIN_HALF, normalized: bool = False) -> np.ndarray:
