@@ -162,11 +162,25 @@ def _nearest_pair(a: Cuboid, b: Cuboid) -> tuple[np.ndarray, np.ndarray]:
     return sa[i], sb[nearest[i]]
 
 
-class BlockState:
-    """Executes the statements of one block in its local frame."""
+def nearest_pair_brute(a: Cuboid, b: Cuboid) -> tuple[np.ndarray, np.ndarray]:
+    """The original's exhaustive search: all 1000 x 1000 sample distances (reference, slow)."""
+    sa, sb = _samples(a, _frame(a)), _samples(b, _frame(b))
+    d2 = ((sa[:, None, :] - sb[None, :, :]) ** 2).sum(-1)                 # (1000, 1000)
+    nearest = d2.argmin(1)
+    i = int(d2[np.arange(len(sa)), nearest].argmin())
+    return sa[i], sb[nearest[i]]
 
-    def __init__(self, bbox_dims, bbox_aligned: bool = True, copy_names=None):
+
+class BlockState:
+    """Executes the statements of one block in its local frame.
+
+    ``nearest`` is the grow step's closest-sample search (default: the exact
+    8-candidate search; :func:`nearest_pair_brute` gives the original's).
+    """
+
+    def __init__(self, bbox_dims, bbox_aligned: bool = True, copy_names=None, nearest=None):
         self.cuboids: dict[str, Cuboid] = {"bbox": Cuboid("bbox", bbox_dims, bbox_aligned)}
+        self.nearest = nearest or _nearest_pair
         # copy naming: the full language counts cuboids ("cube{N}"); the
         # discretized variant names copies after their parent
         self.copy_names = copy_names
@@ -210,7 +224,7 @@ class BlockState:
             r = inner.rel(outer.corners())                       # (8, 3)
             if np.any((r.min(1) >= 0) & (r.max(1) <= 1)):
                 return
-        p, c = _nearest_pair(a, b)
+        p, c = self.nearest(a, b)
         mv = max(float(a.dims.max()), float(b.dims.max()))
         if _norm(p - c) < mv * 0.05:
             return
@@ -385,12 +399,12 @@ def _place(c: Cuboid, p_pos, p_axes, scale) -> tuple[np.ndarray, np.ndarray, np.
     return c.pos @ p_axes + p_pos, (c.axes @ p_axes).astype(F32), (c.dims * scale).astype(F32)
 
 
-def execute_program(program: Program, copy_names=None) -> np.ndarray:
+def execute_program(program: Program, copy_names=None, nearest=None) -> np.ndarray:
     """Run a parsed program; returns the leaf cuboids (n, 15) float32 in output order.
 
     Columns: center xyz, x-axis xyz, y-axis xyz, z-axis xyz, dims (l, h, w).
     ``copy_names(parent, i)`` names reflect (i None) and translate copies; by
-    default the full language's ``cube{N}``.
+    default the full language's ``cube{N}``. ``nearest``: see :class:`BlockState`.
     """
     root = program.blocks[program.root]
     root_dims = np.asarray(root.bbox_dims, dtype=F32)
@@ -400,7 +414,7 @@ def execute_program(program: Program, copy_names=None) -> np.ndarray:
     while queue:
         name, (p_pos, p_axes, p_dims), flip = queue.popleft()
         block = program.blocks[name]
-        state = BlockState(block.bbox_dims, block.stmts[0].args[2], copy_names)
+        state = BlockState(block.bbox_dims, block.stmts[0].args[2], copy_names, nearest)
         state.run(block.stmts)
         cuboids = state.cuboids
         scale = (p_dims / cuboids["bbox"].dims).astype(F32)
@@ -425,8 +439,8 @@ def execute_program(program: Program, copy_names=None) -> np.ndarray:
     return np.stack(leaves).astype(F32)
 
 
-def run_text(text: str) -> np.ndarray:
+def run_text(text: str, nearest=None) -> np.ndarray:
     """Parse and execute full-language text -> (n, 15) float32 cuboids."""
     from plad.domains.shapeassembly.lang import parse_program
 
-    return execute_program(parse_program(text))
+    return execute_program(parse_program(text), nearest=nearest)
