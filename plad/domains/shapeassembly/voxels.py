@@ -80,15 +80,23 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
             continue
         # (c - p) per axis over the box, then the three projections by broadcasting:
         # proj_a[i, j, k] = dx[i] u_a,x + dy[j] u_a,y + dz[k] u_a,z   (box shape)
-        dx = (centers[x0:x1] - p[m, 0])[:, None, None]
-        dy = (centers[y0:y1] - p[m, 1])[None, :, None]
-        dz = (centers[z0:z1] - p[m, 2])[None, None, :]
-        inside = None
-        for a in range(3):
-            ua = u[m, a]
-            proj = dx * ua[0] + dy * ua[1] + dz * ua[2]
-            ok = np.abs(proj) <= half[m, a]
-            inside = ok if inside is None else inside & ok
+        d = [centers[x0:x1] - p[m, 0], centers[y0:y1] - p[m, 1], centers[z0:z1] - p[m, 2]]
+        if np.count_nonzero(u[m]) == 3:
+            # axes along the grid axes (the common case): the test separates into three
+            # 1-D tests; the zero terms of the general sum are exact, so this is the same test
+            k = np.abs(u[m]).argmax(1)                                     # grid axis of each cuboid axis
+            ok = [None, None, None]
+            for a in range(3):
+                ok[k[a]] = np.abs(d[k[a]] * u[m, a, k[a]]) <= half[m, a]
+            inside = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
+        else:
+            dx, dy, dz = d[0][:, None, None], d[1][None, :, None], d[2][None, None, :]
+            inside = None
+            for a in range(3):
+                ua = u[m, a]
+                proj = dx * ua[0] + dy * ua[1] + dz * ua[2]
+                ok_a = np.abs(proj) <= half[m, a]
+                inside = ok_a if inside is None else inside & ok_a
         count[own[m], x0:x1, y0:y1, z0:z1] += inside
         boxes.append(inside)
     # voxels covered exactly once in their shape belong uniquely to their cuboid
