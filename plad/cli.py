@@ -1,6 +1,7 @@
 """The ``plad`` command line.
 
     plad execute csg2d "c(32,24,16)s(40,40,12)+$" -o shape.png
+    plad execute shapeassembly chair.txt -o chair.ply
     plad score csg2d --pred pred.npy --target target.npy
     plad data check | download
 
@@ -75,11 +76,22 @@ def cmd_execute(args: argparse.Namespace) -> int:
     import torch
 
     from plad.domains import get_domain
+    from plad.grammar import ProgramError
 
     domain = get_domain(args.domain)
     text = args.program
     if Path(text).suffix == ".txt" and Path(text).is_file():
         text = Path(text).read_text()
+    execute_text = getattr(domain, "execute_text", None)
+    if execute_text is not None:
+        # 3D domains write their own outputs (voxels, meshes, views) and summarize
+        try:
+            print(execute_text(text, args.output), file=sys.stderr)
+        except ValueError as err:
+            if isinstance(err, ProgramError):
+                raise
+            raise UsageError(str(err)) from None
+        return 0
     ids = domain.parse(text)
     canvas = domain.execute(torch.tensor([ids]))[0].numpy()
     if args.output:
@@ -130,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("execute", help="execute a program and write the shape")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
-    p.add_argument("-o", "--output", help="output file: .png (255 inside, 0 outside) or .npy (bool)")
+    p.add_argument("-o", "--output", help="output file: .png (255 inside, 0 outside) or .npy (bool); "
+                   "shapeassembly: .npy (32^3 bool [x, y, z]), .ply/.obj (mesh) or .png (three views)")
     p.set_defaults(func=cmd_execute)
 
     p = sub.add_parser("score", help="score predicted shapes against targets with the domain metric")

@@ -3,7 +3,11 @@
 Every domain describes its language as a *typed stack machine*. Each token
 pops a sequence of grammar symbols from the top of a stack and pushes a
 sequence of symbols; a program is complete when the stack becomes empty.
-This one mechanism covers both notations the paper uses:
+A token may have several rules (``alt``): the first rule whose pops match the
+top of the stack applies. This lets a bounded counter live in the symbols
+(ShapeAssembly: "the part being declared is cuboid n", so a reference
+``cube_j`` is allowed only for j < n) without one token per context.
+This one mechanism covers the notations the paper uses:
 
 * postfix (2D CSG, CSGNet): the stack holds finished sub-shapes ``E``. A draw
   token pops nothing and pushes ``E``; an operator pops ``E E`` and pushes
@@ -45,6 +49,8 @@ class Token:
     ``pops``/``pushes`` list grammar symbols bottom-to-top (the last one is the
     stack top). ``stop`` tokens may only be used when they empty the stack.
     ``kind`` and ``params`` are for the domain's own use (executor, printing).
+    ``alt`` lists further ``(pops, pushes)`` rules; the first rule (the primary
+    one first) whose pops match the stack top is the one applied.
     """
 
     name: str
@@ -53,6 +59,12 @@ class Token:
     stop: bool = False
     kind: str = ""
     params: tuple = ()
+    alt: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = ()
+
+    @property
+    def rules(self) -> tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]:
+        """All (pops, pushes) rules in the order they are tried."""
+        return ((self.pops, self.pushes),) + tuple(self.alt)
 
 
 @dataclass
@@ -91,14 +103,15 @@ def _symbol_costs(tokens: Sequence[Token], symbols: Sequence[str], ceiling: int)
     removed keep ``ceiling`` and therefore are never allowed on the stack.
     """
     cost = {s: ceiling for s in symbols}
+    rules = [r for t in tokens for r in t.rules]
     for _ in range(4 * len(symbols) + 8):
         changed = False
-        for t in tokens:
-            if not t.pops:
+        for pops, pushes in rules:
+            if not pops:
                 continue
-            gain = 1 + sum(cost[s] for s in t.pushes)
-            for i, s in enumerate(t.pops):
-                others = sum(cost[o] for j, o in enumerate(t.pops) if j != i)
+            gain = 1 + sum(cost[s] for s in pushes)
+            for i, s in enumerate(pops):
+                others = sum(cost[o] for j, o in enumerate(pops) if j != i)
                 bound = max(0, min(ceiling, gain - others))
                 if bound < cost[s]:
                     cost[s] = bound
@@ -130,9 +143,10 @@ class TokenTable:
             self._by_name[t.name] = i
         names: list[str] = []
         for t in self.tokens:
-            for s in (*t.pops, *t.pushes):
-                if s not in names:
-                    names.append(s)
+            for pops, pushes in t.rules:
+                for s in (*pops, *pushes):
+                    if s not in names:
+                        names.append(s)
         for s in self.start:
             if s not in names:
                 names.append(s)
@@ -174,13 +188,15 @@ class TokenTable:
                 raise ProgramError(
                     f"token {pos} {t.name!r} comes after the program is already complete",
                     position=pos, token=t.name)
-            n = len(t.pops)
-            if len(stack) < n or tuple(stack[len(stack) - n:]) != t.pops:
+            rule = next(((pops, pushes) for pops, pushes in t.rules
+                         if len(stack) >= len(pops) and tuple(stack[len(stack) - len(pops):]) == pops), None)
+            if rule is None:
+                need = " or ".join(" ".join(pops) or "nothing" for pops, _ in t.rules)
                 raise ProgramError(
-                    f"token {pos} {t.name!r} needs {' '.join(t.pops) or 'nothing'} on the stack, "
+                    f"token {pos} {t.name!r} needs {need} on the stack, "
                     f"found {' '.join(stack) or 'an empty stack'}", position=pos, token=t.name)
-            del stack[len(stack) - n:]
-            stack.extend(t.pushes)
+            del stack[len(stack) - len(rule[0]):]
+            stack.extend(rule[1])
             if t.stop and stack:
                 raise ProgramError(
                     f"token {pos} {t.name!r} ends the program but {' '.join(stack)} is left unused",
@@ -195,32 +211,54 @@ class TokenTable:
 
     # ---- batched (decoding) API ------------------------------------------------
     def _t(self, device: torch.device) -> dict[str, torch.Tensor]:
-        """Per-token tensors: pops (top first, -1 padded), push ids, depth and cost deltas."""
+        """Per-(token, rule) tensors: pops (V, R, P) top first and -1 padded, push ids
+        (V, R, Q), depth and cost deltas (V, R); rule 0 is the primary rule and
+        ``used`` (V, R) marks the rule slots a token really has."""
         if device not in self._tensors:
             V = len(self.tokens)
-            P = max([len(t.pops) for t in self.tokens] + [1])
-            Q = max([len(t.pushes) for t in self.tokens] + [1])
-            pops = torch.full((V, P), -1, dtype=torch.long)
-            pushes = torch.full((V, Q), -1, dtype=torch.long)
-            n_pop = torch.zeros(V, dtype=torch.long)
-            n_push = torch.zeros(V, dtype=torch.long)
-            dcost = torch.zeros(V, dtype=torch.long)
+            R = max(len(t.rules) for t in self.tokens) if self.tokens else 1
+            P = max([len(p) for t in self.tokens for p, _ in t.rules] + [1])
+            Q = max([len(q) for t in self.tokens for _, q in t.rules] + [1])
+            pops = torch.full((V, R, P), -1, dtype=torch.long)
+            pushes = torch.full((V, R, Q), -1, dtype=torch.long)
+            n_pop = torch.zeros(V, R, dtype=torch.long)
+            n_push = torch.zeros(V, R, dtype=torch.long)
+            dcost = torch.zeros(V, R, dtype=torch.long)
+            used = torch.zeros(V, R, dtype=torch.bool)
             stop = torch.zeros(V, dtype=torch.bool)
             for v, t in enumerate(self.tokens):
-                for j, s in enumerate(reversed(t.pops)):
-                    pops[v, j] = self._sym[s]
-                for j, s in enumerate(t.pushes):
-                    pushes[v, j] = self._sym[s]
-                n_pop[v], n_push[v] = len(t.pops), len(t.pushes)
-                dcost[v] = sum(self.symbol_cost[s] for s in t.pushes) - sum(
-                    self.symbol_cost[s] for s in t.pops)
+                for r, (tp, tq) in enumerate(t.rules):
+                    for j, s in enumerate(reversed(tp)):
+                        pops[v, r, j] = self._sym[s]
+                    for j, s in enumerate(tq):
+                        pushes[v, r, j] = self._sym[s]
+                    n_pop[v, r], n_push[v, r] = len(tp), len(tq)
+                    dcost[v, r] = sum(self.symbol_cost[s] for s in tq) - sum(self.symbol_cost[s] for s in tp)
+                    used[v, r] = True
                 stop[v] = t.stop
             self._tensors[device] = {
                 k: x.to(device) for k, x in dict(
-                    pops=pops, pushes=pushes, n_pop=n_pop, n_push=n_push, dcost=dcost,
+                    pops=pops, pushes=pushes, n_pop=n_pop, n_push=n_push, dcost=dcost, used=used,
                     stop=stop, sym_cost=torch.tensor([self.symbol_cost[s] for s in self.symbols]),
                 ).items()}
         return self._tensors[device]
+
+    def _rule(self, T: dict[str, torch.Tensor], state: GrammarState,
+              tokens: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(applies, rule): whether some rule of a token matches each stack top, and the
+        first matching rule's index. Shapes (B, V) for all tokens, or (B,) for ``tokens`` (B,)."""
+        P = T["pops"].shape[2]
+        # tops[:, j] = symbol j places below the top (j = 0 is the top), -2 below the bottom.
+        offs = torch.arange(P, device=state.stack.device)
+        pos = state.depth[:, None] - 1 - offs[None, :]                      # (B, P)
+        tops = torch.gather(state.stack, 1, pos.clamp(min=0))
+        tops = torch.where(pos >= 0, tops, torch.full_like(tops, -2))
+        if tokens is None:
+            need, used, tops = T["pops"][None], T["used"][None], tops[:, None, None, :]   # (1, V, R, P)
+        else:
+            need, used, tops = T["pops"][tokens], T["used"][tokens], tops[:, None, :]     # (B, R, P)
+        match = ((tops == need) | (need == -1)).all(dim=-1) & used          # (B, [V,] R)
+        return match.any(dim=-1), match.int().argmax(dim=-1)
 
     def initial_state(self, batch: int, device: torch.device | str = "cpu") -> GrammarState:
         device = torch.device(device)
@@ -241,17 +279,12 @@ class TokenTable:
         A finished row allows nothing. Vectorized over batch and vocabulary.
         """
         T = self._t(state.stack.device)
-        P = T["pops"].shape[1]
-        # tops[:, j] = symbol j places below the top (j = 0 is the top), -2 below the bottom.
-        offs = torch.arange(P, device=state.stack.device)
-        pos = state.depth[:, None] - 1 - offs[None, :]                      # (B, P)
-        tops = torch.gather(state.stack, 1, pos.clamp(min=0))
-        tops = torch.where(pos >= 0, tops, torch.full_like(tops, -2))
-        need = T["pops"][None, :, :]                                         # (1, V, P)
-        match = ((tops[:, None, :] == need) | (need == -1)).all(dim=2)       # (B, V)
-        new_depth = state.depth[:, None] - T["n_pop"][None, :] + T["n_push"][None, :]
+        match, rule = self._rule(T, state)                                   # (B, V) each
+        V = rule.shape[1]
+        vv = torch.arange(V, device=rule.device)[None, :]
+        new_depth = state.depth[:, None] - T["n_pop"][vv, rule] + T["n_push"][vv, rule]
         new_len = state.length[:, None] + 1
-        new_cost = state.cost[:, None] + T["dcost"][None, :]
+        new_cost = state.cost[:, None] + T["dcost"][vv, rule]
         ok = match & (new_len + new_cost <= self.max_len) & (new_depth <= self.max_depth)
         ok &= ~T["stop"][None, :] | (new_depth == 0)
         ok &= ~state.done[:, None]
@@ -264,21 +297,22 @@ class TokenTable:
         """
         T = self._t(state.stack.device)
         live = ~state.done
-        n_pop, n_push = T["n_pop"][tokens], T["n_push"][tokens]
+        _, rule = self._rule(T, state, tokens)                              # (B,)
+        n_pop, n_push = T["n_pop"][tokens, rule], T["n_push"][tokens, rule]
         base = state.depth - n_pop                                          # (B,)
         stack = state.stack.clone()
-        Q = T["pushes"].shape[1]
+        Q = T["pushes"].shape[2]
         for j in range(Q):
             write = live & (j < n_push)
             col = (base + j).clamp(0, stack.shape[1] - 1)
             cur = torch.gather(stack, 1, col[:, None])[:, 0]
-            val = torch.where(write, T["pushes"][tokens, j], cur)
+            val = torch.where(write, T["pushes"][tokens, rule, j], cur)
             stack.scatter_(1, col[:, None], val[:, None])
         return GrammarState(
             stack=stack,
             depth=torch.where(live, base + n_push, state.depth),
             length=torch.where(live, state.length + 1, state.length),
-            cost=torch.where(live, state.cost + T["dcost"][tokens], state.cost),
+            cost=torch.where(live, state.cost + T["dcost"][tokens, rule], state.cost),
         )
 
     def encode(self, names: Iterable[str]) -> list[int]:
