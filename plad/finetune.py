@@ -71,6 +71,12 @@ class FinetuneConfig:
 
 #: (model, shapes) -> (values (N,), programs (list of N token lists), executions (N, *shape))
 Infer = Callable[[PLADNet, np.ndarray], tuple[np.ndarray, list, np.ndarray]]
+#: step(name, fn, *args, **kwargs) -> fn(*args, **kwargs), possibly as an orchestrated task
+Step = Callable[..., object]
+
+
+def _direct(name: str, fn, *args, **kwargs):
+    return fn(*args, **kwargs)
 
 
 def mean_metric(model: PLADNet, domain: Domain, shapes: np.ndarray, beam: int, batch: int) -> float:
@@ -111,12 +117,16 @@ def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shape
              method: str, cfg: FinetuneConfig, out_dir: str | Path, *, max_minutes: float | None = None,
              seed: int = 0, infer: Infer | None = None,
              on_round: Callable[[int, dict[str, float]], None] | None = None,
-             on_epoch: Callable[[int, int, dict[str, float]], None] | None = None) -> dict:
+             on_epoch: Callable[[int, int, dict[str, float]], None] | None = None,
+             step: Step | None = None) -> dict:
     """Fine-tune ``model`` towards ``train_shapes`` with the PLAD ``method`` (e.g. ``"lest+st"``).
 
     Resumable from ``out_dir``. ``max_minutes`` bounds the wall-clock time of
     the rounds (inference, generator, training, validation) across resumes.
+    ``step(name, fn, *args)`` runs each step of a round (default: ``fn(*args)``);
+    the Prefect flow makes each one a task.
     """
+    run = step or _direct
     mixture = parse_mixture(method)
     if infer is None:
         def infer(m: PLADNet, shapes: np.ndarray):
@@ -155,7 +165,7 @@ def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shape
         torch.manual_seed(seed * 1_000_003 + rnd)  # a resumed round draws the same dropout masks
         round_dir = out / f"round_{rnd:03d}"
         if not (round_dir / "last.pt").exists():  # P_BEST of this round not yet updated (or a fresh round)
-            stats = infer_into_pbest(model, train_shapes, pbest, infer)
+            stats = run(f"round {rnd}: infer", infer_into_pbest, model, train_shapes, pbest, infer)
             pbest.save(out / "pbest_round.npz")
         else:
             pbest = PBest.load(out / "pbest_round.npz", metric)
@@ -164,8 +174,8 @@ def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shape
         sources = {"st": st_source(pbest, train_shapes, device), "lest": lest_source(pbest, device)}
         left = lambda: budget - state["seconds"] - (time.monotonic() - t0)  # noqa: E731
         if "ws" in mixture.names:
-            ws_programs, ws_shapes, ws_stats = wake_sleep_samples(
-                model, domain, pbest, cfg.ws, out, rnd, len(train_shapes), seed * 104_729 + rnd, left())
+            ws_programs, ws_shapes, ws_stats = run(
+                f"round {rnd}: wake-sleep generator", wake_sleep_samples, model, domain, pbest, cfg.ws, out, rnd, len(train_shapes), seed * 104_729 + rnd, left())
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
         batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=seed * 7919 + rnd)
@@ -179,11 +189,12 @@ def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shape
         def validate(m: PLADNet) -> dict[str, float]:
             return {f"val_{metric.name}": mean_metric(m, domain, val, cfg.val_beam_epoch, cfg.infer_batch)}
 
-        result = fit(model, batches, validate, train_cfg, round_dir, domain=domain.name, token_names=names,
+        result = run(f"round {rnd}: train", fit, model, batches, validate, train_cfg, round_dir,
+                     domain=domain.name, token_names=names,
                      objective=f"val_{metric.name}", higher_is_better=metric.higher_is_better,
                      on_epoch=(lambda e, m: on_epoch(rnd, e, m)) if on_epoch else None,
                      desc=f"round {rnd} train", fingerprint={"method": method, "round": rnd})
-        value = mean_metric(model, domain, val, cfg.val_beam_round, cfg.infer_batch)
+        value = run(f"round {rnd}: validate", mean_metric, model, domain, val, cfg.val_beam_round, cfg.infer_batch)
         improved = sign * (value - state["best"]) > cfg.min_delta
         state["round"] = rnd
         state["seconds"] += time.monotonic() - t0

@@ -93,7 +93,7 @@ def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
     return train, val
 
 
-def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer=None) -> dict:
+def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer=None, step=None) -> dict:
     """Fine-tune one method (a pure function of the config and the files it names)."""
     from plad.checkpoint import load_model
     from plad.device import resolve_device
@@ -116,7 +116,7 @@ def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer
     else:
         plad_cfg = FinetuneConfig(**{**cfg.plad.__dict__, "pbest_mode": spec.pbest_mode})
         summary = finetune(model, domain, train, val, spec.method, plad_cfg, out, max_minutes=cfg.max_minutes,
-                           seed=cfg.seed, infer=infer, on_round=on_round, on_epoch=on_epoch)
+                           seed=cfg.seed, infer=infer, on_round=on_round, on_epoch=on_epoch, step=step)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
     text = json.dumps(summary, indent=2) + "\n"
@@ -125,7 +125,7 @@ def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer
     return summary
 
 
-def tracked_finetune(cfg: FinetuneStageConfig, infer=None) -> dict:
+def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
     """:func:`finetune_stage` as one MLflow run, with a nested run per round (or RL epoch)."""
     from plad.checkpoint import read_checkpoint
     from plad.tracking import StageRun
@@ -153,7 +153,7 @@ def tracked_finetune(cfg: FinetuneStageConfig, infer=None) -> dict:
                     child.log_metrics({k: float(v) for k, v in m.items() if np.isfinite(v)}, step=e)
             epochs.clear()
 
-        summary = finetune_stage(cfg, on_round=on_round, on_epoch=on_epoch, infer=infer)
+        summary = finetune_stage(cfg, on_round=on_round, on_epoch=on_epoch, infer=infer, step=step)
         state = json.loads((out / "state.json").read_text())
         start = state["history"][0]   # the pretrained model's validation metric, at 0 s
         run.log_metrics({"val_at_seconds": next(v for k, v in start.items() if k.startswith("val_"))}, step=0)
