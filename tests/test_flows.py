@@ -1,6 +1,8 @@
 """Prefect flows run the same functions as the DVC stages."""
 import json
 
+import numpy as np
+
 import pytest
 
 
@@ -22,3 +24,110 @@ def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness)
     assert result["csg2d"]["val_count"] == 3000
     assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == result["csg2d"]
     assert load_prepared(tmp_path / "out" / "csg2d.npz", "val").shape == (3000, 64, 64)
+
+
+SMOKE_PARAMS = """
+finetune:
+  domain: csg2d
+  checkpoint: {ckpt}
+  prepared_dir: {prepared}
+  out_dir: unused
+  train_limit: 24
+  val_limit: 6
+  max_minutes: 5
+  methods:
+    lest_st_ws: {{method: lest+st+ws}}
+    st: {{method: st}}
+  plad:
+    infer_beam: 2
+    infer_batch: 12
+    val_beam_epoch: 1
+    val_beam_round: 2
+    max_rounds: 2
+    train: {{batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}}
+    ws: {{latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}}
+evaluate:
+  domain: csg2d
+  checkpoint: {ckpt}
+  prepared_dir: {prepared}
+  limit: 6
+  beam: 2
+report:
+  domain: csg2d
+  per_round: {{}}
+flows:
+  methods: [lest_st_ws]
+  shards: 3
+  threads_per_task: 1
+  cron: "*/30 * * * *"
+  deployment: plad-retrain-test
+  out_dir: {flows_out}
+"""
+
+
+@pytest.fixture(scope="module")
+def smoke_params(tmp_path_factory, datasets_dir):
+    import torch
+
+    from plad.checkpoint import save_checkpoint
+    from plad.domains import get_domain
+    from plad.model import ModelConfig, PLADNet
+    from plad.stages.prepare import PrepareConfig, prepare
+
+    root = tmp_path_factory.mktemp("flow")
+    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"], out_dir=str(root / "prepared")))
+    domain = get_domain("csg2d")
+    torch.manual_seed(0)
+    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
+                                input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
+                                enc_channels=(4, 4, 8, 8)))
+    save_checkpoint(root / "sp.pt", model, "csg2d", domain.tokens.names)
+    params = root / "params.yaml"
+    params.write_text(SMOKE_PARAMS.format(ckpt=root / "sp.pt", prepared=root / "prepared",
+                                          flows_out=root / "flows"))
+    return params
+
+
+def test_retraining_schedule_is_defined_by_the_params(smoke_params):
+    from flows.finetune import deployment
+
+    dep = deployment(str(smoke_params))
+    assert dep.name == "plad-retrain-test"
+    assert [s.schedule.cron for s in dep.schedules] == ["*/30 * * * *"]
+    assert dep.parameters == {"params_path": str(smoke_params.resolve())}
+
+
+def test_sharded_inference_equals_one_batch(smoke_params):
+    from flows.finetune import FlowsConfig, _infer_shard
+    from plad.checkpoint import load_model
+    from plad.search import infer_batched
+    from plad.stages.prepare import load_prepared
+    from plad.domains import get_domain
+
+    model, _ = load_model(smoke_params.parent / "sp.pt")
+    shapes = load_prepared(smoke_params.parent / "prepared" / "csg2d.npz", "val")[:10]
+    whole = infer_batched(model, get_domain("csg2d"), shapes, 2, 10)
+    parts = [_infer_shard(model, "csg2d", shapes[i:i + 4], 2, 10, None) for i in range(0, 10, 4)]
+    assert np.allclose(whole[0], np.concatenate([p[0] for p in parts]), atol=1e-9)
+    assert np.array_equal(whole[2], np.concatenate([p[2] for p in parts]))
+
+
+def test_finetune_flow_runs_rounds_as_tasks_and_reports(smoke_params, prefect_harness, tmp_path, monkeypatch):
+    from prefect.client.orchestration import get_client
+
+    from flows.finetune import finetune_flow
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    out = finetune_flow(str(smoke_params), run_name="once")
+    root = smoke_params.parent / "flows" / "once"
+    summary = out["methods"]["lest_st_ws"]
+    assert summary["rounds"] == 2 and np.isfinite(summary["test"])
+    assert (root / "finetune" / "csg2d" / "lest_st_ws" / "ws_round_002.npz").exists()
+    table = (root / "results" / "table.md").read_text()
+    assert "| LEST+ST+WS |" in table and "| SP |" in table
+    with get_client(sync_client=True) as client:
+        names = [t.name for t in client.read_task_runs()]
+    shards = [n for n in names if n.startswith("infer shard")]
+    assert len(shards) == 2 * 3  # 2 rounds x 3 shards
+    for step in ["train", "validate", "wake-sleep generator", "infer"]:
+        assert any(n.startswith(f"round 1: {step}") for n in names), step

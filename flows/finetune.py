@@ -1,0 +1,172 @@
+"""Prefect flow: PLAD fine-tuning rounds as tasks, test evaluation and the report.
+
+    python -m flows.finetune --params params.yaml [--methods lest_st st] [--run-name NAME]
+    python -m flows.finetune --params params.yaml --serve      # periodic retraining (needs `prefect server start`)
+
+The flow calls the same functions as the DVC stages (``plad.stages.finetune``,
+``plad.stages.evaluate``, ``plad.stages.report``); it only decides how the
+steps run. Each step of a round (inference, wake-sleep generator, training,
+validation) is a task; inference over the training shapes is split into
+``flows.shards`` tasks, with retries, that run in parallel on the flow's task
+runner: threads by default, a Dask cluster when ``flows.dask_address`` is set
+(through prefect-dask). Every flow run writes under
+``flows.out_dir/<run name>/`` so that scheduled retrainings never overwrite
+each other; a run started again with the same name resumes.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from prefect import flow, task
+from prefect.cache_policies import NONE
+
+from plad.config import ConfigError, load_params, section
+
+
+@dataclass
+class FlowsConfig:
+    #: the finetune.methods entries a flow run trains (empty: all of them)
+    methods: list[str] = field(default_factory=list)
+    #: inference tasks per round (shards of the training shapes)
+    shards: int = 2
+    #: retries of an inference shard
+    retries: int = 2
+    retry_delay_seconds: float = 10
+    #: a Dask scheduler address ("tcp://host:8786"): run the tasks there; null: threads in this process
+    dask_address: str | None = None
+    #: torch threads per inference task (null: torch's default)
+    threads_per_task: int | None = None
+    #: cron of the served deployment (periodic retraining)
+    cron: str = "0 3 * * 0"
+    deployment: str = "plad-retrain"
+    out_dir: str = "runs/flows"
+    evaluate: bool = True
+
+
+def _infer_shard(model, domain_name: str, shapes: np.ndarray, beam: int, batch: int, threads: int | None):
+    import torch
+
+    from plad.domains import get_domain
+    from plad.search import infer_batched
+
+    if threads:
+        torch.set_num_threads(threads)
+    return infer_batched(model, get_domain(domain_name), shapes, beam, batch, desc="infer shard")
+
+
+def sharded_infer(domain_name: str, beam: int, batch: int, cfg: FlowsConfig):
+    """An ``Infer`` for :func:`plad.finetune.finetune` that maps shards of the shapes over tasks."""
+    shard_task = task(_infer_shard, name="infer shard", retries=cfg.retries,
+                      retry_delay_seconds=cfg.retry_delay_seconds, cache_policy=NONE)
+
+    def infer(model, shapes: np.ndarray):
+        parts = [p for p in np.array_split(np.arange(len(shapes)), max(1, cfg.shards)) if len(p)]
+        futures = [shard_task.submit(model, domain_name, shapes[p], beam, batch, cfg.threads_per_task)
+                   for p in parts]
+        results = [f.result() for f in futures]
+        values = np.concatenate([r[0] for r in results])
+        programs = [p for r in results for p in r[1]]
+        executions = np.concatenate([r[2] for r in results])
+        return values, programs, executions
+    return infer
+
+
+def task_step(name: str, fn, *args, **kwargs):
+    """Run one step of a round as a Prefect task named after it."""
+    return task(fn, name=name, cache_policy=NONE)(*args, **kwargs)
+
+
+def run_configs(params: dict, source: str, run_name: str):
+    """(flows, finetune, evaluate, report) configs, with every output under ``flows.out_dir/run_name``."""
+    from plad.stages.evaluate import EvaluateConfig
+    from plad.stages.finetune import FinetuneStageConfig
+    from plad.stages.report import ReportConfig
+
+    fcfg = section(params, "flows", FlowsConfig, source) if "flows" in params else FlowsConfig()
+    ft = section(params, "finetune", FinetuneStageConfig, source)
+    ev = section(params, "evaluate", EvaluateConfig, source)
+    rp = section(params, "report", ReportConfig, source)
+    unknown = [m for m in fcfg.methods if m not in ft.methods]
+    if unknown:
+        raise ConfigError(f"{source}: flows.methods {', '.join(unknown)} not in finetune.methods")
+    root = Path(fcfg.out_dir) / run_name
+    ft = dataclasses.replace(ft, out_dir=str(root / "finetune"), summary_dir=str(root / "results" / "finetune"))
+    return fcfg, ft, ev, rp, root
+
+
+@flow(name="plad-finetune")
+def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = None,
+                  run_name: str | None = None) -> dict:
+    """Fine-tune the configured methods, evaluate them on the test split, and write the report."""
+    from plad.stages.evaluate import tracked_evaluate
+    from plad.stages.finetune import tracked_finetune
+    from plad.stages.report import report
+
+    run_name = run_name or dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    params = load_params(params_path)
+    fcfg, ft, ev, rp, root = run_configs(params, params_path, run_name)
+    keys = list(methods or fcfg.methods or ft.methods)
+    out: dict = {"run_name": run_name, "out_dir": str(root), "methods": {}}
+    for key in keys:
+        cfg = dataclasses.replace(ft, key=key)
+        infer = sharded_infer(cfg.domain, cfg.plad.infer_beam, cfg.plad.infer_batch, fcfg)
+        summary = tracked_finetune(cfg, infer=infer, step=task_step)
+        out["methods"][key] = summary
+        if fcfg.evaluate:
+            ecfg = dataclasses.replace(ev, method=key, checkpoint=str(Path(cfg.out_dir) / cfg.domain / key / "best.pt"),
+                                       out_dir=str(root / "results" / "eval" / key / cfg.domain))
+            out["methods"][key]["test"] = task(tracked_evaluate, name=f"evaluate {key}", cache_policy=NONE)(ecfg)[
+                ecfg.splits[-1]]["mean"]
+    if fcfg.evaluate:
+        sp = dataclasses.replace(ev, out_dir=str(root / "results" / "eval" / "sp" / ft.domain))
+        task(tracked_evaluate, name="evaluate sp", cache_policy=NONE)(sp)
+        rcfg = dataclasses.replace(rp, methods=["sp", *[k for k in keys if k not in rp.per_round.values()]],
+                                   per_round={a: b for a, b in rp.per_round.items() if a in keys and b in keys},
+                                   results_dir=str(root / "results"), finetune_dir=ft.out_dir,
+                                   out_dir=str(root / "results"), register=False)
+        out["report"] = task(report, name="report", cache_policy=NONE)(rcfg)
+    return out
+
+
+def with_runner(params_path: str):
+    """The flow with the task runner chosen by ``flows.dask_address``."""
+    params = load_params(params_path)
+    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    if fcfg.dask_address:
+        from prefect_dask import DaskTaskRunner
+
+        return finetune_flow.with_options(task_runner=DaskTaskRunner(address=fcfg.dask_address))
+    return finetune_flow
+
+
+def deployment(params_path: str):
+    """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
+    params = load_params(params_path)
+    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    return with_runner(params_path).to_deployment(
+        name=fcfg.deployment, cron=fcfg.cron, parameters={"params_path": str(Path(params_path).resolve())})
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m flows.finetune", description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--methods", nargs="*", help="finetune.methods keys (default: flows.methods, else all)")
+    parser.add_argument("--run-name", help="output folder under flows.out_dir (default: the UTC time)")
+    parser.add_argument("--serve", action="store_true",
+                        help="serve the deployment on its cron (needs a running `prefect server start`)")
+    args = parser.parse_args(argv)
+    if args.serve:
+        from prefect import serve
+
+        serve(deployment(args.params))
+    else:
+        print(with_runner(args.params)(args.params, args.methods, args.run_name))
+
+
+if __name__ == "__main__":
+    main()
