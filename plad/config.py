@@ -23,7 +23,7 @@ class ConfigError(ValueError):
 
 
 #: Top-level keys a params file may have: ``profile`` and one section per stage.
-SECTIONS = {"profile", "prepare", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows"}
+SECTIONS = {"profile", "prepare", "prepare_3d", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows"}
 
 
 def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:

@@ -37,21 +37,26 @@ def prepare(cfg: PrepareConfig) -> dict[str, dict]:
     for name in cfg.domains:
         domain = get_domain(name)
         splits = {s: domain.target_data(s, cfg.data_dir) for s in SPLITS}
-        arrays = {}
-        for s, shapes in splits.items():
-            arrays[s] = np.packbits(shapes.reshape(len(shapes), -1), axis=1)
-        arrays["shape"] = np.asarray(domain.shape)
-        summary = {
-            "domain": name,
-            "shape": list(domain.shape),
-            **{f"{s}_count": int(len(x)) for s, x in splits.items()},
-            **{f"{s}_occupancy": round(float(x.mean()), 6) for s, x in splits.items()},
-        }
-        out = Path(cfg.out_dir)
-        atomic_write(out / f"{name}.npz", lambda fh: np.savez_compressed(fh, **arrays))
-        atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2) + "\n")
-        summaries[name] = summary
+        summaries[name] = write_prepared(name, tuple(domain.shape), splits, cfg.out_dir)
     return summaries
+
+
+def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarray], out_dir: str | os.PathLike,
+                   extra: dict | None = None) -> dict:
+    """Write ``<out_dir>/<name>.npz`` (bit-packed splits) and its ``.json`` summary; returns the summary."""
+    arrays = {s: np.packbits(x.reshape(len(x), -1), axis=1) for s, x in splits.items()}
+    arrays["shape"] = np.asarray(shape)
+    summary = {
+        "domain": name,
+        "shape": list(shape),
+        **{f"{s}_count": int(len(x)) for s, x in splits.items()},
+        **{f"{s}_occupancy": round(float(x.mean()), 6) if len(x) else 0.0 for s, x in splits.items()},
+        **(extra or {}),
+    }
+    out = Path(out_dir)
+    atomic_write(out / f"{name}.npz", lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2) + "\n")
+    return summary
 
 
 def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
