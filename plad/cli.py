@@ -4,6 +4,7 @@
     plad execute shapeassembly chair.txt -o chair.ply
     plad score csg2d --pred pred.npy --target target.npy
     plad data check | download
+    plad models
 
 Errors in the user's input are one line on stderr and a non-zero status
 (2 for a bad program or file, 1 for missing data), never a traceback.
@@ -133,6 +134,20 @@ def cmd_data(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    from plad.tracking import registered_models, tracking_uri
+
+    rows = registered_models()
+    if not rows:
+        print(f"no registered models in {tracking_uri()}", file=sys.stderr)
+        return 0
+    print(f"{'model':<24} {'version':>7}  {'aliases':<12} {'method':<18} test metric")
+    for r in rows:
+        print(f"{r['name']:<24} {r['version']:>7}  {','.join(r['aliases']) or '-':<12} "
+              f"{r['method'] or '-':<18} {r['test'] or '-'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from plad.domains import domain_names
 
@@ -156,6 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("action", choices=["check", "download"])
     p.add_argument("--data-dir", default=None, help="data directory (default: $PLAD_DATA_DIR or ./data/datasets)")
     p.set_defaults(func=cmd_data)
+
+    p = sub.add_parser("models", help="list the registered models (MLflow registry) with their test metric")
+    p.set_defaults(func=cmd_models)
     return parser
 
 

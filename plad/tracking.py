@@ -448,6 +448,18 @@ def set_champion(name: str, version: int | str, alias: str = "champion") -> None
     _mlflow().MlflowClient().set_registered_model_alias(name, alias, str(version))
 
 
+def registered_models() -> list[dict[str, Any]]:
+    """Every version of every registered model: name, version, aliases and the PLAD tags (method, test metric)."""
+    client = _mlflow().MlflowClient()
+    rows = []
+    for rm in client.search_registered_models():
+        for mv in client.search_model_versions(f"name = '{rm.name}'"):
+            rows.append({"name": rm.name, "version": int(mv.version), "aliases": sorted(mv.aliases or []),
+                         "method": (mv.tags or {}).get("plad.method"), "test": (mv.tags or {}).get("plad.test"),
+                         "run_id": mv.run_id})
+    return sorted(rows, key=lambda r: (r["name"], -r["version"]))
+
+
 def load_registered(uri: str):
     """The pyfunc model at ``uri`` (``models:/name@champion``, ``models:/name/3``, ...)."""
     return _mlflow().pyfunc.load_model(uri)

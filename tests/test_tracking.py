@@ -198,7 +198,7 @@ def test_nested_round_runs(store, client, tmp_path):
     assert client.get_run(bad.run_id).info.status == "FAILED"
 
 
-def test_log_model_register_champion_predict(store, client, tmp_path):
+def test_log_model_register_champion_predict(store, client, tmp_path, capsys):
     import torch
 
     from plad.checkpoint import save_checkpoint
@@ -221,6 +221,15 @@ def test_log_model_register_champion_predict(store, client, tmp_path):
     assert mv.run_id == run.run_id
     tracking.set_champion(name, version)
     assert str(client.get_model_version_by_alias(name, "champion").version) == version
+
+    client.set_model_version_tag(name, version, "plad.method", "lest_st")
+    client.set_model_version_tag(name, version, "plad.test", "0.9")
+    row = next(r for r in tracking.registered_models() if r["name"] == name)
+    assert row["aliases"] == ["champion"] and row["method"] == "lest_st" and row["test"] == "0.9"
+    from plad.cli import main as plad_main
+    assert plad_main(["models"]) == 0
+    listed = capsys.readouterr().out
+    assert name in listed and "champion" in listed and "lest_st" in listed
 
     loaded = tracking.load_registered(f"models:/{name}@champion")
     rng = np.random.default_rng(0)
