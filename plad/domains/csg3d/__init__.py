@@ -1,8 +1,8 @@
 """3D CSG domain: prefix programs of cuboids and ellipsoids with union/inter/diff on 32^3 voxels.
 
 Modules: :mod:`.tokens` (vocabulary, grammar, text form), :mod:`.executor`
-(batched bit-packed voxel executor), :mod:`.sampler` (synthetic programs).
-
+(batched bit-packed voxel executor), :mod:`.sampler` (synthetic programs),
+:mod:`.export` (mesh, views, OpenSCAD).
 
 Executed shapes are bool (B, 32, 32, 32) indexed [x, y, z], voxel (i, j, k)
 centered at (i, j, k) in the parameters' index units. The real target shapes
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 from functools import cached_property
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -60,6 +61,43 @@ class CSG3D(Domain):
         from plad.domains.shapeassembly.dataset import load_split
 
         return load_split(split, data_dir)
+
+    # ---- command line -------------------------------------------------------------------
+    def execute_text(self, text: str, output: str | os.PathLike | None) -> str:
+        """``plad execute csg3d``: program text -> file by suffix.
+
+        ``.npy`` the 32^3 bool grid [x, y, z], ``.ply``/``.obj`` a marching-cubes
+        mesh of it (voxel index units), ``.png`` three orthographic views.
+        Returns a one-line summary.
+        """
+        ids = self.parse(text)
+        grid = self.execute(torch.tensor([ids]))[0].numpy()
+        if output is not None:
+            from plad.domains.csg3d import export
+
+            path = Path(output)
+            suffix = path.suffix.lower()
+            if suffix == ".npy":
+                np.save(path, grid)
+            elif suffix in (".ply", ".obj"):
+                export.save_mesh(grid, path)
+            elif suffix == ".png":
+                export.save_views(grid, path, title=None)
+            else:
+                raise ValueError(f"{path}: unsupported output type {suffix or '(none)'!r}; "
+                                 f"use .npy, .ply, .obj or .png")
+        return f"{self.format(ids)}: {int(grid.sum())} of {RES ** 3} voxels occupied"
+
+    #: formats of ``plad export csg3d``
+    export_formats = ("scad",)
+
+    def export_text(self, text: str, fmt: str) -> str:
+        """``plad export csg3d --format scad``: an equivalent OpenSCAD file's text."""
+        from plad.domains.csg3d.export import to_scad
+
+        if fmt != "scad":
+            raise ValueError(f"unknown export format {fmt!r} for csg3d; known: {', '.join(self.export_formats)}")
+        return to_scad(self.parse(text))
 
 
 __all__ = ["CSG3D"]
