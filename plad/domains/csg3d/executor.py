@@ -26,9 +26,12 @@ with the operands swapped, so each program runs as a stack machine over its
 primitives and operators taken in reverse order: a primitive pushes its
 grid; an operator pops A (the top: its first operand) and B and pushes
 ``A | B``, ``A & B`` or ``A & ~B``. All programs of a batch take these steps
-together; a program's stack is a (depth, 1024) slice of one int32 tensor.
+together (rows sorted by step count, so the running rows are a prefix); a
+program's stack is a (depth, 1024) slice of one int32 tensor.
 """
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 import torch
@@ -70,10 +73,26 @@ def _as_int32(words: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(words, dtype=np.uint32).view(np.int32))
 
 
+_BYTE_BITS: dict[torch.device, torch.Tensor] = {}
+
+
 def unpack(words: torch.Tensor) -> torch.Tensor:
-    """int32 (..., 32, 32) words -> bool (..., 32, 32, 32) indexed [x, y, z]."""
-    bits = torch.arange(RES, dtype=torch.int32, device=words.device)
-    return ((words.unsqueeze(-1) >> bits) & 1).bool()
+    """int32 (..., 32, 32) words -> bool (..., 32, 32, 32) indexed [x, y, z].
+
+    Byte-wise: each byte of a word (little-endian: byte j holds z = 8j .. 8j+7)
+    indexes a table of its 8 bits stored as 8 bytes of 0/1 in one int64, so the
+    output is written once, without (..., 32) int32 temporaries.
+    """
+    dev = words.device
+    if sys.byteorder != "little":  # torch views memory in the machine's byte order
+        raise NotImplementedError("csg3d unpack assumes a little-endian machine")
+    if dev not in _BYTE_BITS:
+        b = torch.arange(256)
+        bits = ((b[:, None] >> torch.arange(8)) & 1).to(torch.uint8)     # (256, 8) bit i of byte b
+        _BYTE_BITS[dev] = bits.contiguous().view(torch.int64).squeeze(1).to(dev)
+    as_bytes = words.contiguous().view(torch.uint8).reshape(-1)          # 4 bytes per word, low byte first
+    out = torch.index_select(_BYTE_BITS[dev], 0, as_bytes.int())         # (4 * words,) int64 = 8 bools each
+    return out.view(torch.bool).reshape(*words.shape, RES)
 
 
 def pack(grids: torch.Tensor) -> torch.Tensor:
@@ -217,30 +236,34 @@ class Executor:
         prim_of.scatter_(1, col, torch.where(code == _PRIM, prim_id, torch.zeros_like(prim_id)))
         steps, prim_of = steps[order], prim_of[order]
         running = n_steps[order].tolist()
-        # the stack never holds more entries than the program has primitives
+        # The top of each stack lives apart in ``top`` and ``stack`` holds the entries below it, so a
+        # step reads one stack entry (an operator's second operand) and writes at most one (a
+        # primitive pushes the old top down). There are fewer entries below the top than the
+        # program has primitives; slot ``depth_max`` is scratch for rows with nothing to store.
         depth_max = int((code == _PRIM).sum(1).max()) if B else 0
-        stack = torch.zeros(B, max(depth_max, 1), _WORDS, dtype=torch.int32, device=dev)
-        depth = torch.zeros(B, dtype=torch.long, device=dev)
+        stack = torch.empty(B, depth_max + 1, _WORDS, dtype=torch.int32, device=dev)
+        top = torch.zeros(B, _WORDS, dtype=torch.int32, device=dev)
+        below = torch.zeros(B, dtype=torch.long, device=dev)              # entries under the top
         degenerate = torch.zeros(B, dtype=torch.bool, device=dev)
         ar = torch.arange(B, device=dev)
         n = B
         for s in range(S):
             while running[n - 1] <= s:                                    # rows that have finished
                 n -= 1
-            c, dp, r = steps[:n, s], depth[:n], ar[:n]                    # (n,)
+            c, bd, r, a = steps[:n, s], below[:n], ar[:n], top[:n]        # a (n, 1024): first operand
             is_prim, is_op = c == _PRIM, c >= _UNION
-            a = stack[r, (dp - 1).clamp(min=0)]                           # (n, 1024) top: first operand
-            b = stack[r, (dp - 2).clamp(min=0)]                           # (n, 1024) second operand
+            if s > 0:                                                     # (the first step has no top yet)
+                stack[r, torch.where(is_prim, bd, torch.full_like(bd, depth_max))] = a
+            b = stack[r, (bd - 1).clamp(min=0)]                           # (n, 1024) second operand
             xy = T["xy"][c]                                               # (n, 2)
             res = (a & (b ^ xy[:, :1])) | (b & xy[:, 1:])
             if check_degenerate:
                 same = (res == a).all(1) | (res == b).all(1) | (res == 0).all(1)
                 degenerate[:n] |= is_op & same
-            res = torch.where(is_prim[:, None], prims[prim_of[:n, s]], res) if len(rows) else res
-            stack[r, torch.where(is_prim, dp, dp - 2)] = res
-            depth[:n] = dp + is_prim.long() - is_op.long()
+            top[:n] = torch.where(is_prim[:, None], prims[prim_of[:n, s]], res) if len(rows) else res
+            below[:n] = bd + (is_prim & (s > 0)).long() - is_op.long()
         words = torch.empty(B, _WORDS, dtype=torch.int32, device=dev)
-        words[order] = stack[:, 0]
+        words[order] = top
         flags = torch.empty(B, dtype=torch.bool, device=dev)
         flags[order] = degenerate
         return words.reshape(B, RES, RES), flags
