@@ -2,6 +2,8 @@
 
     plad execute csg2d "c(32,24,16)s(40,40,12)+$" -o shape.png
     plad execute shapeassembly chair.txt -o chair.ply
+    plad execute csg3d "diff cuboid 16 16 16 20 20 20 ellipsoid 16 16 16 12 12 30" -o shape.ply
+    plad export csg3d "union cuboid 8 8 8 6 6 6 ellipsoid 12 10 9 8 6 4" --format scad -o shape.scad
     plad score csg2d --pred pred.npy --target target.npy
     plad data check | download
     plad models
@@ -103,6 +105,33 @@ def cmd_execute(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from plad.domains import get_domain
+    from plad.grammar import ProgramError
+
+    domain = get_domain(args.domain)
+    export_text = getattr(domain, "export_text", None)
+    formats = getattr(domain, "export_formats", ())
+    if export_text is None or not formats:
+        raise UsageError(f"the {args.domain} domain has no export formats")
+    if args.format not in formats:
+        raise UsageError(f"unknown export format {args.format!r} for {args.domain}; known: {', '.join(formats)}")
+    text = args.program
+    if Path(text).suffix == ".txt" and Path(text).is_file():
+        text = Path(text).read_text()
+    try:
+        out = export_text(text, args.format)
+    except ValueError as err:
+        if isinstance(err, ProgramError):
+            raise
+        raise UsageError(str(err)) from None
+    if args.output:
+        Path(args.output).write_text(out)
+    else:
+        sys.stdout.write(out)
+    return 0
+
+
 def cmd_score(args: argparse.Namespace) -> int:
     import torch
 
@@ -158,8 +187,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("-o", "--output", help="output file: .png (255 inside, 0 outside) or .npy (bool); "
-                   "shapeassembly: .npy (32^3 bool [x, y, z]), .ply/.obj (mesh) or .png (three views)")
+                   "shapeassembly, csg3d: .npy (32^3 bool [x, y, z]), .ply/.obj (mesh) or .png (three views)")
     p.set_defaults(func=cmd_execute)
+
+    p = sub.add_parser("export", help="write a program in another tool's format (csg3d: OpenSCAD .scad)")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("program", help="program text (or a .txt file holding it)")
+    p.add_argument("--format", required=True, help="output format, e.g. scad for csg3d")
+    p.add_argument("-o", "--output", help="output file (default: standard output)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("score", help="score predicted shapes against targets with the domain metric")
     p.add_argument("domain", choices=domain_names())

@@ -12,6 +12,7 @@ from plad.domains.base import Domain
 # name -> "module:attribute" of a Domain subclass
 _REGISTRY: dict[str, str] = {
     "csg2d": "plad.domains.csg2d:CSG2D",
+    "csg3d": "plad.domains.csg3d:CSG3D",
     "shapeassembly": "plad.domains.shapeassembly:ShapeAssembly",
 }
 _INSTANCES: dict[str, Domain] = {}

@@ -1,0 +1,137 @@
+"""csg3d outputs: marching-cubes mesh, three orthographic views, and OpenSCAD text.
+
+Coordinates are the programs' voxel index units: voxel (i, j, k) of a grid
+indexed [x, y, z] is centered at (i, j, k), so a mesh or SCAD solid lies in
+[-0.5, 31.5]^3 with y up, like the ShapeAssembly views (same view axes).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from plad.domains.csg3d.tokens import program_tree
+
+
+def mesh_arrays(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(32, 32, 32) bool [x, y, z] -> vertices (V, 3) float64, triangles (F, 3) int64.
+
+    Marching cubes at level 0.5 of the occupancy, padded by one empty voxel on
+    every side so that shapes touching the border are closed.
+    """
+    from skimage.measure import marching_cubes
+
+    grid = np.asarray(grid, dtype=bool)
+    if not grid.any():
+        raise ValueError("the shape is empty: there is no surface to write")
+    padded = np.pad(grid, 1).astype(np.float32)
+    verts, faces, _, _ = marching_cubes(padded, level=0.5)
+    return verts.astype(np.float64) - 1.0, faces.astype(np.int64)     # undo the padding offset
+
+
+def save_mesh(grid: np.ndarray, path: str | Path) -> None:
+    """Write the surface of a voxel grid as a triangle mesh (.ply or .obj) with open3d."""
+    import open3d as o3d
+
+    verts, faces = mesh_arrays(grid)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(faces))
+    mesh.compute_vertex_normals()
+    if not o3d.io.write_triangle_mesh(str(path), mesh):
+        raise OSError(f"open3d could not write {path}")
+
+
+def depth_views(grid: np.ndarray) -> dict[str, np.ndarray]:
+    """Per view of :data:`plad.domains.shapeassembly.export._VIEWS`: (rows = vertical axis,
+    cols = horizontal axis) float image, the depth index (0 nearest the viewer) of the first
+    occupied voxel along the view direction, NaN where the ray misses."""
+    from plad.domains.shapeassembly.export import _VIEWS
+
+    grid = np.asarray(grid, dtype=bool)
+    out = {}
+    for name, h, v, d, sign in _VIEWS:
+        occ = np.transpose(grid, (v, h, d))                              # (vertical, horizontal, depth)
+        if sign > 0:                                                     # the viewer is on the +d side
+            occ = occ[:, :, ::-1]
+        first = occ.argmax(axis=2).astype(np.float64)
+        first[~occ.any(axis=2)] = np.nan
+        out[name] = first
+    return out
+
+
+def save_views(grid: np.ndarray, path: str | Path, title: str | None = None) -> None:
+    """PNG with three orthographic views (front: x-y, side: z-y, top: x-z) of a voxel grid.
+
+    Each pixel is the nearest occupied voxel along the view, shaded darker with
+    depth. Uses matplotlib's Agg backend (no display needed).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from plad.domains.shapeassembly.export import _VIEWS
+
+    n = np.asarray(grid).shape[0]
+    views = depth_views(grid)
+    fig, axs = plt.subplots(1, 3, figsize=(9, 3.3))
+    for ax, (name, _h, v, _d, _sign) in zip(axs, _VIEWS):
+        depth = views[name]
+        shade = 1.0 - 0.65 * np.nan_to_num(depth, nan=0.0) / max(n - 1, 1)
+        rgb = np.stack([shade * .55, shade * .7, shade], axis=-1)        # the ShapeAssembly views' tint
+        rgb[np.isnan(depth)] = 1.0                                      # white background
+        # y up in the front/side views; in the top view +z (the front) is down, as for ShapeAssembly
+        ax.imshow(rgb, origin="lower" if v != 2 else "upper", interpolation="nearest",
+                  extent=(-0.5, n - 0.5, -0.5, n - 0.5) if v != 2 else (-0.5, n - 0.5, n - 0.5, -0.5))
+        ax.set_title(name)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=100)
+    plt.close(fig)
+
+
+_SCAD_OPS = {"union": "union", "inter": "intersection", "diff": "difference"}
+
+
+def _num(v: float) -> str:
+    return f"{v:g}"
+
+
+def to_scad(ids: Sequence[int], fn: int = 48) -> str:
+    """An OpenSCAD file equivalent to a valid csg3d program.
+
+    ``cuboid x y z dx dy dz`` -> ``translate([x, y, z]) cube([dx, dy, dz], center = true);``,
+    ``ellipsoid ...`` -> ``translate([x, y, z]) scale([dx/2, dy/2, dz/2]) sphere(r = 1);``,
+    operators -> ``union() {A B}``, ``intersection() {A B}``, ``difference() {A B}``
+    (OpenSCAD's difference subtracts its later children from the first, like ``diff A B``).
+    ``fn`` is the sphere tessellation (``$fn``).
+    """
+    from plad.domains.csg3d.tokens import format_program
+
+    lines = [
+        f"// csg3d program: {format_program(ids)}",
+        "// Units: voxels. Voxel (i, j, k) of the 32^3 grid indexed [x, y, z] is centered at (i, j, k);",
+        "// the program's shape is the set of voxel centers inside this solid.",
+        f"$fn = {fn};",
+    ]
+
+    def emit(node, indent: int) -> None:
+        pad = "  " * indent
+        if node[0] in ("cuboid", "ellipsoid"):
+            x, y, z, dx, dy, dz = node[1]
+            move = f"translate([{x}, {y}, {z}])"
+            if node[0] == "cuboid":
+                lines.append(f"{pad}{move} cube([{dx}, {dy}, {dz}], center = true);")
+            else:
+                lines.append(f"{pad}{move} scale([{_num(dx / 2)}, {_num(dy / 2)}, {_num(dz / 2)}]) sphere(r = 1);")
+            return
+        lines.append(f"{pad}{_SCAD_OPS[node[0]]}() {{")
+        emit(node[1], indent + 1)
+        emit(node[2], indent + 1)
+        lines.append(f"{pad}}}")
+
+    emit(program_tree(ids), 0)
+    return "\n".join(lines) + "\n"
