@@ -453,8 +453,13 @@ def registered_models() -> list[dict[str, Any]]:
     client = _mlflow().MlflowClient()
     rows = []
     for rm in client.search_registered_models():
+        # search_model_versions leaves ModelVersion.aliases empty on the SQLite store (MLflow 3.17);
+        # the registered model carries the alias -> version map.
+        by_version: dict[int, list[str]] = {}
+        for alias, version in (rm.aliases or {}).items():
+            by_version.setdefault(int(version), []).append(alias)
         for mv in client.search_model_versions(f"name = '{rm.name}'"):
-            rows.append({"name": rm.name, "version": int(mv.version), "aliases": sorted(mv.aliases or []),
+            rows.append({"name": rm.name, "version": int(mv.version), "aliases": sorted(by_version.get(int(mv.version), [])),
                          "method": (mv.tags or {}).get("plad.method"), "test": (mv.tags or {}).get("plad.test"),
                          "run_id": mv.run_id})
     return sorted(rows, key=lambda r: (r["name"], -r["version"]))
