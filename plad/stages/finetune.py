@@ -164,7 +164,8 @@ def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
         final = out / ("learner.pt" if cfg.methods[cfg.key].method == "rl" else "current.pt")
         if final.exists():
             run.log_artifact(final, "final")
-        run.log_model(out / "best.pt")
+        # No pyfunc model per method: logging one costs seconds of environment checks per run; the
+        # report logs and registers the champion of each domain (plad-<domain>@champion).
     return summary
 
 
