@@ -30,6 +30,8 @@ from plad.config import ConfigError, load_params, section
 
 @dataclass
 class FlowsConfig:
+    #: the domain a flow run retrains (its sections finetune.<domain>, evaluate.<domain>)
+    domain: str = "csg2d"
     #: the finetune.methods entries a flow run trains (empty: all of them)
     methods: list[str] = field(default_factory=list)
     #: inference tasks per round (shards of the training shapes)
@@ -88,12 +90,12 @@ def run_configs(params: dict, source: str, run_name: str):
     from plad.stages.report import ReportConfig
 
     fcfg = section(params, "flows", FlowsConfig, source) if "flows" in params else FlowsConfig()
-    ft = section(params, "finetune", FinetuneStageConfig, source)
-    ev = section(params, "evaluate", EvaluateConfig, source)
+    ft = section(params, f"finetune.{fcfg.domain}", FinetuneStageConfig, source)
+    ev = section(params, f"evaluate.{fcfg.domain}", EvaluateConfig, source)
     rp = section(params, "report", ReportConfig, source)
     unknown = [m for m in fcfg.methods if m not in ft.methods]
     if unknown:
-        raise ConfigError(f"{source}: flows.methods {', '.join(unknown)} not in finetune.methods")
+        raise ConfigError(f"{source}: flows.methods {', '.join(unknown)} not in finetune.{fcfg.domain}.methods")
     root = Path(fcfg.out_dir) / run_name
     ft = dataclasses.replace(ft, out_dir=str(root / "finetune"), summary_dir=str(root / "results" / "finetune"))
     return fcfg, ft, ev, rp, root
@@ -125,7 +127,7 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
     if fcfg.evaluate:
         sp = dataclasses.replace(ev, out_dir=str(root / "results" / "eval" / "sp" / ft.domain))
         task(tracked_evaluate, name="evaluate sp", cache_policy=NONE)(sp)
-        rcfg = dataclasses.replace(rp, methods=["sp", *[k for k in keys if k not in rp.per_round.values()]],
+        rcfg = dataclasses.replace(rp, domains=[ft.domain], methods=["sp", *[k for k in keys if k not in rp.per_round.values()]],
                                    per_round={a: b for a, b in rp.per_round.items() if a in keys and b in keys},
                                    results_dir=str(root / "results"), finetune_dir=ft.out_dir,
                                    out_dir=str(root / "results"), register=False)

@@ -23,7 +23,8 @@ class ConfigError(ValueError):
 
 
 #: Top-level keys a params file may have: ``profile`` and one section per stage.
-SECTIONS = {"profile", "prepare", "prepare_3d", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows"}
+SECTIONS = {"profile", "domains", "methods", "prepare", "prepare_3d", "synthesize", "pretrain", "evaluate",
+            "finetune", "report", "flows"}
 
 
 def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
@@ -95,11 +96,20 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
     return cls(**values)
 
 
+def lookup(params: dict[str, Any], name: str, source: str = "params.yaml") -> Any:
+    """``params["pretrain"]["csg2d"]`` for ``name = "pretrain.csg2d"``; a missing part is an error."""
+    node: Any = params
+    for i, part in enumerate(name.split(".")):
+        if not isinstance(node, dict) or part not in node:
+            where = ".".join(name.split(".")[:i + 1])
+            raise ConfigError(f"{source}: section {where!r} is missing")
+        node = node[part]
+    return node
+
+
 def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
-    """Build ``cls`` from ``params[name]`` (see :func:`build`); the section must be present."""
-    if name not in params:
-        raise ConfigError(f"{source}: section {name!r} is missing")
-    return build(cls, params[name], name, source)
+    """Build ``cls`` from the section ``name`` (dotted for a domain's subsection, e.g. ``pretrain.csg2d``)."""
+    return build(cls, lookup(params, name, source), name, source)
 
 
 def apply_overrides(raw: dict[str, Any], overrides: list[str], where: str) -> dict[str, Any]:

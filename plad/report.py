@@ -113,49 +113,81 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
 
 
 # -- rendering ------------------------------------------------------------------------------------
+DOMAIN_TITLES = {"csg2d": "2D CSG", "csg3d": "3D CSG", "shapeassembly": "ShapeAssembly"}
+
+
 def _fmt(v: float | None, digits: int) -> str:
     return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
-def table_markdown(domain: str, results: list[MethodResult], per_round: dict[str, str],
-                   profile: str | None = None) -> str:
+def _column(domain: str) -> tuple[str, float, int]:
+    """(header, scale, digits) of a domain's metric column."""
     from plad.domains import get_domain
 
     metric = get_domain(domain).metric
     k = scale(domain)
-    digits = 3 if k == 1 else 1
+    arrow = "higher is better" if metric.higher_is_better else "lower is better"
     name = f"{metric.name} x100" if k != 1 else metric.name
-    better = "higher" if metric.higher_is_better else "lower"
-    paper = PAPER_TABLE.get(domain, {})
-    by_key = {r.key: r for r in results}
-    lines = [f"# Results: {domain}" + (f" ({profile} profile)" if profile else ""), "",
-             f"Test set, best of beam 10 by the metric; {name}, {better} is better. "
-             "The paper's numbers (Table 1) are given for reference.", "",
-             f"| method | ours ({name}) | paper | fine-tuning time (min) | rounds / epochs | stopped |",
-             "|---|---|---|---|---|---|"]
-    for r in results:
-        if r.key in per_round.values():
-            continue
-        lines.append(f"| {label(r.key)} | {_fmt(r.test * k if r.test is not None else None, digits)} | "
-                     f"{_fmt(paper.get(r.key), digits)} | "
-                     f"{_fmt(r.train_seconds / 60 if r.train_seconds is not None else None, 1)} | "
-                     f"{r.rounds if r.rounds is not None else '—'} | {r.stopped or '—'} |")
+    return f"{DOMAIN_TITLES.get(domain, domain)}: {name}, {arrow}", k, (3 if k == 1 else 1)
+
+
+def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], per_round: dict[str, str],
+                   profile: str | None = None) -> str:
+    """Table 1 layout: a row per method, per domain our value and the paper's; then times and P_BEST."""
+    domains = list(results)
+    by = {d: {r.key: r for r in rs} for d, rs in results.items()}
+    lines = ["# Results" + (f" ({profile} profile)" if profile else ""), "",
+             "Test sets, best of beam 10 by the domain metric. The paper's numbers (Table 1) are for reference.", ""]
+    head, rule = "| method |", "|---|"
+    for d in domains:
+        title, _, _ = _column(d)
+        head += f" {title} (ours) | paper |"
+        rule += "---|---|"
+    lines += [head, rule]
+    for key in methods:
+        row = f"| {label(key)} |"
+        for d in domains:
+            _, k, digits = _column(d)
+            r = by[d].get(key)
+            row += f" {_fmt(r.test * k if r and r.test is not None else None, digits)} |" \
+                   f" {_fmt(PAPER_TABLE.get(d, {}).get(key), digits)} |"
+        lines.append(row)
+    lines += ["", "## Fine-tuning runs", "",
+              "| method | " + " | ".join(f"{DOMAIN_TITLES.get(d, d)}: minutes, rounds (RL: epochs), stop"
+                                        for d in domains) + " |",
+              "|---|" + "---|" * len(domains)]
+    for key in [m for m in methods if m != "sp"] + [v for v in per_round.values() if v not in methods]:
+        cells = []
+        for d in domains:
+            r = by[d].get(key)
+            if r is None or r.train_seconds is None:
+                cells.append("—")
+            else:
+                cells.append(f"{r.train_seconds / 60:.1f} min, {r.rounds}, {r.stopped}")
+        lines.append(f"| {label(key)} | " + " | ".join(cells) + " |")
     if per_round:
-        ref = PAPER_PER_ROUND.get(domain, {})
-        lines += ["", "## P_BEST: all-time vs per-round (supplement)", "",
-                  f"| method | all-time (ours) | per-round (ours) | all-time (paper) | per-round (paper) |",
-                  "|---|---|---|---|---|"]
-        for a, b in per_round.items():
-            ra, rb = by_key.get(a), by_key.get(b)
-            va = ra.test * k if ra and ra.test is not None else None
-            vb = rb.test * k if rb and rb.test is not None else None
-            lines.append(f"| {label(a)} | {_fmt(va, digits)} | {_fmt(vb, digits)} | "
-                         f"{_fmt(paper.get(a), digits)} | {_fmt(ref.get(a), digits)} |")
-    return "\n".join(lines) + "\n"
+        lines += ["", "## P_BEST: all-time vs per-round (supplement)", ""]
+        for d in domains:
+            _, k, digits = _column(d)
+            ref = PAPER_PER_ROUND.get(d, {})
+            paper = PAPER_TABLE.get(d, {})
+            lines += [f"{DOMAIN_TITLES.get(d, d)}:", "",
+                      "| method | all-time (ours) | per-round (ours) | all-time (paper) | per-round (paper) |",
+                      "|---|---|---|---|---|"]
+            for a, b in per_round.items():
+                ra, rb = by[d].get(a), by[d].get(b)
+                va = ra.test * k if ra and ra.test is not None else None
+                vb = rb.test * k if rb and rb.test is not None else None
+                lines.append(f"| {label(a)} | {_fmt(va, digits)} | {_fmt(vb, digits)} | "
+                             f"{_fmt(paper.get(a), digits)} | {_fmt(ref.get(a), digits)} |")
+            lines.append("")
+    return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def convergence_png(domain: str, results: list[MethodResult], path: str | Path) -> None:
-    """Validation metric against fine-tuning wall-clock time, one line per method."""
+def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) -> None:
+    """Validation metric (best so far) against fine-tuning wall-clock time: a panel per domain, a line per method."""
+    import io
+
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -163,29 +195,30 @@ def convergence_png(domain: str, results: list[MethodResult], path: str | Path) 
     from plad.domains import get_domain
     from plad.fsutil import atomic_write
 
-    metric = get_domain(domain).metric
-    k = scale(domain)
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
-    for r in results:
-        if len(r.curve) < 2:
-            continue
-        t, v = zip(*r.curve)
-        # the selected model so far: the running best, as used for the table
-        best, shown = [], None
-        for x in v:
-            shown = x if shown is None or metric.better(x, shown) else shown
-            best.append(shown * k)
-        ax.step([s / 60 for s in t], best, where="post", label=label(r.key), marker="o", markersize=3)
-    sp = next((r for r in results if r.curve), None)
-    if sp is not None:
-        ax.axhline(sp.curve[0][1] * k, color="grey", linestyle=":", label="SP (start)")
-    ax.set_xlabel("fine-tuning wall-clock time (min)")
-    ax.set_ylabel(f"validation {metric.name}" + (" x100" if k != 1 else "") + " (best so far)")
-    ax.set_title(f"{domain}: convergence")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    n = max(1, len(results))
+    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4.5), dpi=110, squeeze=False)
+    for ax, (domain, rs) in zip(axes[0], results.items()):
+        metric = get_domain(domain).metric
+        k = scale(domain)
+        start = None
+        for r in rs:
+            if len(r.curve) < 2:
+                continue
+            t, v = zip(*r.curve)
+            start = v[0]
+            best, shown = [], None
+            for x in v:   # the selected model so far, as used for the table
+                shown = x if shown is None or metric.better(x, shown) else shown
+                best.append(shown * k)
+            ax.step([s / 60 for s in t], best, where="post", label=label(r.key), marker="o", markersize=3)
+        if start is not None:
+            ax.axhline(start * k, color="grey", linestyle=":", label="SP (start)")
+        ax.set_xlabel("fine-tuning wall-clock time (min)")
+        ax.set_ylabel(f"validation {metric.name}" + (" x100" if k != 1 else "") + " (best so far)")
+        ax.set_title(DOMAIN_TITLES.get(domain, domain))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     fig.tight_layout()
-    import io
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     plt.close(fig)

@@ -45,13 +45,27 @@ def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
 
 
 def test_profiles_are_complete_and_params_is_the_cpu_profile():
-    sections = [("prepare", PrepareConfig), ("synthesize", SynthesizeConfig), ("pretrain", PretrainConfig),
-                ("evaluate", EvaluateConfig)]
+    from flows.finetune import FlowsConfig
+    from plad.stages.finetune import FinetuneStageConfig
+    from plad.stages.prepare_3d import Prepare3DConfig
+    from plad.stages.report import ReportConfig
+
+    per_domain = [("synthesize", SynthesizeConfig), ("pretrain", PretrainConfig), ("evaluate", EvaluateConfig),
+                  ("finetune", FinetuneStageConfig)]
     for profile in ("smoke", "cpu", "paper"):
         params = load_params(REPO / "profiles" / f"{profile}.yaml")
         assert params["profile"] == profile
-        for name, cls in sections:
+        for name, cls in [("prepare", PrepareConfig), ("prepare_3d", Prepare3DConfig), ("report", ReportConfig),
+                          ("flows", FlowsConfig)]:
             section(params, name, cls)
+        assert section(params, "report", ReportConfig).domains == params["domains"]
+        for domain in params["domains"]:
+            for name, cls in per_domain:
+                cfg = section(params, f"{name}.{domain}", cls)
+                assert cfg.domain == domain, (profile, name, domain)
+            ft = section(params, f"finetune.{domain}", FinetuneStageConfig)
+            assert list(ft.methods) == params["methods"]   # every DVC matrix entry has its params key
+            assert section(params, f"pretrain.{domain}", PretrainConfig).out_dir == "runs/pretrain"
     assert (REPO / "params.yaml").read_text() == (REPO / "profiles" / "cpu.yaml").read_text()
 
 

@@ -28,32 +28,34 @@ def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness)
 
 SMOKE_PARAMS = """
 finetune:
-  domain: csg2d
-  checkpoint: {ckpt}
-  prepared_dir: {prepared}
-  out_dir: unused
-  train_limit: 24
-  val_limit: 6
-  max_minutes: 5
-  methods:
-    lest_st_ws: {{method: lest+st+ws}}
-    st: {{method: st}}
-  plad:
-    infer_beam: 2
-    infer_batch: 12
-    val_beam_epoch: 1
-    val_beam_round: 2
-    max_rounds: 2
-    train: {{batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}}
-    ws: {{latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}}
+  csg2d:
+    domain: csg2d
+    checkpoint: {ckpt}
+    prepared_dir: {prepared}
+    out_dir: unused
+    train_limit: 24
+    val_limit: 6
+    max_minutes: 5
+    methods:
+      lest_st_ws: {{method: lest+st+ws}}
+      st: {{method: st}}
+    plad:
+      infer_beam: 2
+      infer_batch: 12
+      val_beam_epoch: 1
+      val_beam_round: 2
+      max_rounds: 2
+      train: {{batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}}
+      ws: {{latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}}
 evaluate:
-  domain: csg2d
-  checkpoint: {ckpt}
-  prepared_dir: {prepared}
-  limit: 6
-  beam: 2
+  csg2d:
+    domain: csg2d
+    checkpoint: {ckpt}
+    prepared_dir: {prepared}
+    limit: 6
+    beam: 2
 report:
-  domain: csg2d
+  domains: [csg2d]
   per_round: {{}}
 flows:
   methods: [lest_st_ws]

@@ -49,6 +49,12 @@ def test_smoke_repro_writes_metrics_and_grid(smoke_run):
     assert len(lines) == 21 and lines[0] == "index,chamfer,program"
     summary = json.loads((work / "runs" / "pretrain" / "csg2d" / "summary.json").read_text())
     assert summary["epochs"] == 2
+    for domain in ("csg3d", "shapeassembly"):
+        sp = json.loads((work / "results" / "eval" / "sp" / domain / "metrics.json").read_text())
+        assert sp["metric"] == "iou" and sp["higher_is_better"] and sp["test"]["n"] == 10
+        assert 0 <= sp["test"]["mean"] <= 1
+    built = json.loads((work / "data" / "prepared" / "partnet_voxels.json").read_text())
+    assert built["listed"] == {"train": 20, "val": 20, "test": 20} and built["failures"] == []
 
 
 def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
@@ -62,13 +68,16 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     assert (runs["status"] == "FINISHED").all()
     assert runs["tags.plad.pipeline"].nunique() == 1  # one repro, one group
     finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
-    assert set(finetuned["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round"}
+    for domain in DOMAINS:
+        mine = finetuned[finetuned["tags.plad.domain"] == domain]
+        assert set(mine["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round"}
+    finetuned = finetuned[finetuned["tags.plad.domain"] == "csg2d"]
     rounds = runs[runs["tags.mlflow.parentRunId"].isin(finetuned["run_id"])]
     ws = finetuned[finetuned["tags.plad.method"] == "lest_st_ws"].iloc[0]
     ws_rounds = rounds[rounds["tags.mlflow.parentRunId"] == ws["run_id"]]
     assert sorted(ws_rounds["tags.plad.round"]) == ["1", "2"]       # one nested run per round
     assert ws_rounds["metrics.pbest_mean"].notna().all() and ws_rounds["metrics.pbest_improved"].notna().all()
-    pre = runs[runs["tags.plad.stage"] == "pretrain"].iloc[0]
+    pre = runs[(runs["tags.plad.stage"] == "pretrain") & (runs["tags.plad.domain"] == "csg2d")].iloc[0]
     assert pre["params.train.batch_size"] == "32"
     client = mlflow.tracking.MlflowClient()
     history = client.get_metric_history(pre["run_id"], "val_loss")
@@ -86,22 +95,30 @@ def test_smoke_repro_is_up_to_date_afterwards(smoke_run):
 
 
 METHODS = ["rl", "ws", "st", "lest", "lest_st", "lest_st_ws"]
+DOMAINS = ["csg2d", "csg3d", "shapeassembly"]
 
 
 def test_smoke_repro_writes_the_whole_table(smoke_run):
     work, _, _ = smoke_run
     table = (work / "results" / "table.md").read_text()
-    rows = [line.split("|")[1].strip() for line in table.splitlines() if line.startswith("| ") and "---" not in line]
-    assert rows[:8] == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS"]
+    main = table.split("## Fine-tuning runs")[0]
+    rows = [line.split("|")[1].strip() for line in main.splitlines() if line.startswith("| ") and "---" not in line]
+    assert rows == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS"]
+    assert "2D CSG: chamfer" in main and "3D CSG: iou x100" in main and "ShapeAssembly: iou x100" in main
     assert "| LEST+ST | " in table.split("all-time vs per-round")[1]
-    for key in ["sp", *METHODS, "lest_st_per_round"]:
-        m = json.loads((work / "results" / "eval" / key / "csg2d" / "metrics.json").read_text())
-        assert m["method"] == key and m["test"]["n"] == 20
-        assert f"| {m['test']['mean']:.3f} |" in table or key == "lest_st_per_round"
+    lines = {line.split("|")[1].strip(): line for line in main.splitlines() if line.startswith("| ")}
+    for domain, n, scale, digits in [("csg2d", 20, 1, 3), ("csg3d", 10, 100, 1), ("shapeassembly", 10, 100, 1)]:
+        for key in ["sp", *METHODS, "lest_st_per_round"]:
+            m = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())
+            assert m["method"] == key and m["test"]["n"] == n
+            if key != "lest_st_per_round":
+                label = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
+                         "lest_st_ws": "LEST+ST+WS"}[key]
+                assert f"| {m['test']['mean'] * scale:.{digits}f} |" in lines[label]
+        for key in METHODS:
+            state = json.loads((work / "runs" / "finetune" / domain / key / "state.json").read_text())
+            assert len(state["history"]) == 3  # start + 2 rounds (RL: 2 epochs)
     assert (work / "results" / "convergence.png").read_bytes()[:4] == b"\x89PNG"
-    for key in METHODS:
-        state = json.loads((work / "runs" / "finetune" / "csg2d" / key / "state.json").read_text())
-        assert len(state["history"]) == 3  # start + 2 rounds (RL: 2 epochs)
 
 
 def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
@@ -118,6 +135,7 @@ def test_report_registers_the_champion(smoke_run):
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
     report = json.loads((work / "results" / "report.json").read_text())
-    version = mlflow.MlflowClient().get_model_version_by_alias("plad-csg2d", "champion")
-    assert str(version.version) == report["champion"]["version"]
-    assert version.tags["plad.method"] == report["champion"]["method"]
+    for domain in DOMAINS:
+        champ = report["domains"][domain]["champion"]
+        version = mlflow.MlflowClient().get_model_version_by_alias(f"plad-{domain}", "champion")
+        assert str(version.version) == champ["version"] and version.tags["plad.method"] == champ["method"]

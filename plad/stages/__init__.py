@@ -18,20 +18,19 @@ T = TypeVar("T")
 def stage_main(stage: str, cls: type[T], run: Callable[[T], Any], argv: list[str] | None = None,
                description: str | None = None) -> int:
     from plad.checkpoint import CheckpointError
-    from plad.config import ConfigError, apply_overrides, build, load_params
+    from plad.config import ConfigError, apply_overrides, build, load_params, lookup
     from plad.data import DataError
 
     parser = argparse.ArgumentParser(prog=f"python -m plad.stages.{stage}", description=description)
     parser.add_argument("--params", default="params.yaml")
-    parser.add_argument("--section", default=stage, help="params section to read (default: the stage name)")
+    parser.add_argument("--section", default=stage,
+                        help="params section to read (default: the stage name; a domain's: e.g. pretrain.csg2d)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a key of the section (dotted for nested keys; value parsed as YAML)")
     args = parser.parse_args(argv)
     try:
         params = load_params(args.params)
-        if args.section not in params:
-            raise ConfigError(f"{args.params}: section {args.section!r} is missing")
-        raw = apply_overrides(params[args.section], args.set, args.section)
+        raw = apply_overrides(lookup(params, args.section, args.params), args.set, args.section)
         cfg = build(cls, raw, args.section, source=args.params)
         print(json.dumps(run(cfg)))
     except (ConfigError, DataError, CheckpointError) as err:

@@ -20,14 +20,16 @@ from plad.stages import stage_main
 
 @dataclass
 class ReportConfig:
-    domain: str = "csg2d"
+    #: the table's columns
+    domains: list[str] = field(default_factory=lambda: ["csg2d"])
     #: rows of the table, in order (keys of finetune.methods, plus "sp")
     methods: list[str] = field(default_factory=lambda: ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws"])
     #: all-time method key -> its per-round variant, for the P_BEST comparison
     per_round: dict[str, str] = field(default_factory=lambda: {"lest_st": "lest_st_per_round"})
     results_dir: str = "results"
     finetune_dir: str = "runs/finetune"
-    pretrain_checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    #: SP models: <pretrain_dir>/<domain>/best.pt
+    pretrain_dir: str = "runs/pretrain"
     out_dir: str = "results"
     #: where the numbers come from: "files" (the pipeline's outputs) or "mlflow"
     source: str = "files"
@@ -36,26 +38,27 @@ class ReportConfig:
     profile: str | None = None
 
 
-def gather(cfg: ReportConfig):
+def gather(cfg: ReportConfig) -> dict:
+    """{domain: [MethodResult per method]} from the configured source."""
     from plad.config import ConfigError
     from plad.report import from_files, from_mlflow
 
     keys = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values()]))
     if cfg.source == "files":
-        return from_files(cfg.domain, keys, cfg.results_dir, cfg.finetune_dir)
+        return {d: from_files(d, keys, cfg.results_dir, cfg.finetune_dir) for d in cfg.domains}
     if cfg.source == "mlflow":
-        return from_mlflow(cfg.domain, keys)
+        return {d: from_mlflow(d, keys) for d in cfg.domains}
     raise ConfigError(f"report.source {cfg.source!r}: expected files or mlflow")
 
 
-def champion(cfg: ReportConfig, results) -> tuple[str, float] | None:
+def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | None:
     """(method key, validation value) of the selected model with the best validation metric.
 
     SP competes with its own validation value, the first point of every curve.
     """
     from plad.domains import get_domain
 
-    metric = get_domain(cfg.domain).metric
+    metric = get_domain(domain).metric
     candidates = []
     for r in results:
         if r.key in cfg.per_round.values():
@@ -72,49 +75,54 @@ def champion(cfg: ReportConfig, results) -> tuple[str, float] | None:
 
 
 def report(cfg: ReportConfig) -> dict:
+    from plad.data import DataError
     from plad.report import convergence_png, table_markdown
 
     results = gather(cfg)
-    missing = [r.key for r in results if r.test is None]
+    missing = [f"{d}/{r.key}" for d, rs in results.items() for r in rs if r.test is None]
     if missing:
-        from plad.data import DataError
         where = "MLflow" if cfg.source == "mlflow" else cfg.results_dir
-        raise DataError(where, f"no test evaluation for method(s) {', '.join(missing)}")
+        raise DataError(where, f"no test evaluation for {', '.join(missing)}")
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "table.md", table_markdown(cfg.domain, results, cfg.per_round, cfg.profile))
-    convergence_png(cfg.domain, [r for r in results if r.key not in cfg.per_round.values()],
+    atomic_write_text(out / "table.md", table_markdown(results, cfg.methods, cfg.per_round, cfg.profile))
+    convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
                     out / "convergence.png")
-    summary = {"domain": cfg.domain, "source": cfg.source,
-               "test": {r.key: r.test for r in results},
-               "train_seconds": {r.key: r.train_seconds for r in results}}
-    best = champion(cfg, results)
-    if best is not None:
-        summary["champion"] = {"method": best[0], "val": best[1]}
+    summary: dict = {"source": cfg.source, "domains": {}}
+    for d, rs in results.items():
+        entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs}}
+        best = champion(cfg, d, rs)
+        if best is not None:
+            entry["champion"] = {"method": best[0], "val": best[1]}
+        summary["domains"][d] = entry
     atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 
 def tracked_report(cfg: ReportConfig) -> dict:
+    """:func:`report` as an MLflow run; registers each domain's champion as ``plad-<domain>@champion``."""
     from plad.tracking import StageRun, set_champion
 
     out = Path(cfg.out_dir)
-    with StageRun("report", cfg.domain, asdict(cfg), out / ".report_run") as run:
+    with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run") as run:
         summary = report(cfg)
         for name in ["table.md", "convergence.png", "report.json"]:
             run.log_artifact(out / name)
-        if cfg.register and "champion" in summary:
-            key = summary["champion"]["method"]
-            ckpt = Path(cfg.pretrain_checkpoint) if key == "sp" else Path(cfg.finetune_dir) / cfg.domain / key / "best.pt"
-            name = f"plad-{cfg.domain}"
-            uri = run.log_model(ckpt, registered_name=name)
-            version = uri.rsplit("/", 1)[-1]
-            set_champion(name, version)
+        if cfg.register:
             import mlflow
             client = mlflow.MlflowClient()
-            client.set_model_version_tag(name, version, "plad.method", key)
-            client.set_model_version_tag(name, version, "plad.test", str(summary["test"].get(key)))
-            summary["champion"].update(model=f"models:/{name}@champion", version=version)
+            for d, entry in summary["domains"].items():
+                if "champion" not in entry:
+                    continue
+                key = entry["champion"]["method"]
+                base = Path(cfg.pretrain_dir) if key == "sp" else Path(cfg.finetune_dir)
+                ckpt = base / d / "best.pt" if key == "sp" else base / d / key / "best.pt"
+                name = f"plad-{d}"
+                version = run.log_model(ckpt, registered_name=name).rsplit("/", 1)[-1]
+                set_champion(name, version)
+                client.set_model_version_tag(name, version, "plad.method", key)
+                client.set_model_version_tag(name, version, "plad.test", str(entry["test"].get(key)))
+                entry["champion"].update(model=f"models:/{name}@champion", version=version)
             atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
