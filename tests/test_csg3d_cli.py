@@ -6,7 +6,8 @@ import pytest
 
 from plad.cli import main
 from plad.domains import get_domain
-from plad.domains.csg3d.export import depth_views, mesh_arrays, to_scad
+from plad.domains.csg3d.export import mesh_arrays, to_scad
+from plad.pictures import depth_views
 from tests.reference.csg3d_render import render
 
 DOMAIN = get_domain("csg3d")

@@ -41,56 +41,11 @@ def save_mesh(grid: np.ndarray, path: str | Path) -> None:
         raise OSError(f"open3d could not write {path}")
 
 
-def depth_views(grid: np.ndarray) -> dict[str, np.ndarray]:
-    """Per view of :data:`plad.domains.shapeassembly.export._VIEWS`: (rows = vertical axis,
-    cols = horizontal axis) float image, the depth index (0 nearest the viewer) of the first
-    occupied voxel along the view direction, NaN where the ray misses."""
-    from plad.domains.shapeassembly.export import _VIEWS
-
-    grid = np.asarray(grid, dtype=bool)
-    out = {}
-    for name, h, v, d, sign in _VIEWS:
-        occ = np.transpose(grid, (v, h, d))                              # (vertical, horizontal, depth)
-        if sign > 0:                                                     # the viewer is on the +d side
-            occ = occ[:, :, ::-1]
-        first = occ.argmax(axis=2).astype(np.float64)
-        first[~occ.any(axis=2)] = np.nan
-        out[name] = first
-    return out
-
-
 def save_views(grid: np.ndarray, path: str | Path, title: str | None = None) -> None:
-    """PNG with three orthographic views (front: x-y, side: z-y, top: x-z) of a voxel grid.
+    """PNG with three orthographic depth views (front: x-y, side: z-y, top: x-z) of a voxel grid."""
+    from plad.pictures import save_views as views
 
-    Each pixel is the nearest occupied voxel along the view, shaded darker with
-    depth. Uses matplotlib's Agg backend (no display needed).
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from plad.domains.shapeassembly.export import _VIEWS
-
-    n = np.asarray(grid).shape[0]
-    views = depth_views(grid)
-    fig, axs = plt.subplots(1, 3, figsize=(9, 3.3))
-    for ax, (name, _h, v, _d, _sign) in zip(axs, _VIEWS):
-        depth = views[name]
-        shade = 1.0 - 0.65 * np.nan_to_num(depth, nan=0.0) / max(n - 1, 1)
-        rgb = np.stack([shade * .55, shade * .7, shade], axis=-1)        # the ShapeAssembly views' tint
-        rgb[np.isnan(depth)] = 1.0                                      # white background
-        # y up in the front/side views; in the top view +z (the front) is down, as for ShapeAssembly
-        ax.imshow(rgb, origin="lower" if v != 2 else "upper", interpolation="nearest",
-                  extent=(-0.5, n - 0.5, -0.5, n - 0.5) if v != 2 else (-0.5, n - 0.5, n - 0.5, -0.5))
-        ax.set_title(name)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=100)
-    plt.close(fig)
+    views(grid, path, title)
 
 
 _SCAD_OPS = {"union": "union", "inter": "intersection", "diff": "difference"}

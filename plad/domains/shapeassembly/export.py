@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from plad.domains.shapeassembly.voxels import corners
+from plad.pictures import VIEWS as _VIEWS  # the view axes of every 3D picture
 
 # triangles of a cuboid over the corner order of voxels.corners (index = 4 sx + 2 sy + sz,
 # with s = 0 for -, 1 for +), outward facing (counter-clockwise seen from outside)
@@ -31,10 +32,6 @@ def save_mesh(cuboids: np.ndarray, path: str | Path) -> None:
     mesh.compute_vertex_normals()
     if not o3d.io.write_triangle_mesh(str(path), mesh):
         raise OSError(f"open3d could not write {path}")
-
-
-# (name, horizontal axis, vertical axis, depth axis, depth sign): views look along -depth
-_VIEWS = (("front", 0, 1, 2, 1), ("side", 2, 1, 0, -1), ("top", 0, 2, 1, 1))
 
 
 def save_views(cuboids: np.ndarray, path: str | Path, title: str | None = None) -> None:

@@ -1,0 +1,87 @@
+"""Pictures of shapes, for any domain: 2D canvases as images, 3D voxel grids as three depth views.
+
+The view convention (shared with the ShapeAssembly cuboid views): grids are
+indexed [x, y, z] with y up; ``front`` looks along -z (x right, y up),
+``side`` along +x (z right, y up), ``top`` along -y (x right, +z down).
+Uses matplotlib's Agg backend (no display needed).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+#: (name, horizontal axis, vertical axis, depth axis, depth sign): views look along -sign * depth
+VIEWS = (("front", 0, 1, 2, 1), ("side", 2, 1, 0, -1), ("top", 0, 2, 1, 1))
+
+# the tint of shaded 3D views (ShapeAssembly's cuboid views use the same)
+_TINT = np.array([0.55, 0.7, 1.0])
+
+
+def depth_views(grid: np.ndarray) -> dict[str, np.ndarray]:
+    """Per view of :data:`VIEWS`: a (vertical, horizontal) float image holding the depth index
+    (0 nearest the viewer) of the first occupied voxel along the view direction, NaN where the
+    ray misses."""
+    grid = np.asarray(grid, dtype=bool)
+    out = {}
+    for name, h, v, d, sign in VIEWS:
+        occ = np.transpose(grid, (v, h, d))                              # (vertical, horizontal, depth)
+        if sign > 0:                                                     # the viewer is on the +d side
+            occ = occ[:, :, ::-1]
+        first = occ.argmax(axis=2).astype(np.float64)
+        first[~occ.any(axis=2)] = np.nan
+        out[name] = first
+    return out
+
+
+def _show_view(ax, depth: np.ndarray, n: int, vertical_axis: int) -> None:
+    shade = 1.0 - 0.65 * np.nan_to_num(depth, nan=0.0) / max(n - 1, 1)
+    rgb = shade[..., None] * _TINT
+    rgb[np.isnan(depth)] = 1.0                                          # white background
+    # y up in the front/side views; in the top view +z (the front) is down
+    top = vertical_axis == 2
+    ax.imshow(rgb, origin="upper" if top else "lower", interpolation="nearest",
+              extent=(-0.5, n - 0.5, n - 0.5, -0.5) if top else (-0.5, n - 0.5, -0.5, n - 0.5))
+
+
+def save_views(grid: np.ndarray, path: str | Path, title: str | None = None) -> None:
+    """PNG with the three depth views of one voxel grid."""
+    save_comparison([("", grid)], path, title)
+
+
+def save_comparison(panels: Sequence[tuple[str, np.ndarray]], path: str | Path, title: str | None = None) -> None:
+    """PNG of shapes side by side: 2D canvases in one row; 3D grids one row each (three views).
+
+    ``panels``: (label, bool array) pairs, all 2D or all 3D.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arrays = [np.asarray(a, dtype=bool) for _, a in panels]
+    dims = {a.ndim for a in arrays}
+    if len(dims) != 1 or dims - {2, 3}:
+        raise ValueError(f"expected all 2D or all 3D shapes, got dimensions {sorted(dims)}")
+    if dims == {2}:
+        fig, axs = plt.subplots(1, len(panels), figsize=(3 * len(panels), 3.3), squeeze=False)
+        for ax, (label, _), a in zip(axs[0], panels, arrays):
+            ax.imshow(~a, cmap="gray", vmin=0, vmax=1, interpolation="nearest")   # black shape on white
+            ax.set_title(label)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    else:
+        fig, axs = plt.subplots(len(panels), 3, figsize=(9, 3.3 * len(panels)), squeeze=False)
+        for row, (label, _), a in zip(axs, panels, arrays):
+            views = depth_views(a)
+            for ax, (name, _h, v, _d, _s) in zip(row, VIEWS):
+                _show_view(ax, views[name], a.shape[0], v)
+                ax.set_title(f"{label}: {name}" if label else name)
+                ax.set_xticks([])
+                ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=100)
+    plt.close(fig)
