@@ -55,3 +55,9 @@ def datasets_dir() -> Path:
             pytest.fail(f"PLAD_DATA_DIR={env} does not exist")
         return path
     return require_shared("datasets")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Put files marked ``slow_first`` first, so that under ``-n 2 --dist loadfile`` one worker runs
+    the long smoke pipeline while the other runs everything else (stable order otherwise)."""
+    items.sort(key=lambda item: 0 if item.get_closest_marker("slow_first") else 1)
