@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import abc
 import os
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -65,6 +66,12 @@ class Domain(abc.ABC):
     @abc.abstractmethod
     def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
         """Real target shapes of a split (``train``/``val``/``test``): bool (N, *shape)."""
+
+    # -- outputs of inferred programs ------------------------------------------------------------
+    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
+        """Write files that carry the valid program ``ids`` into other tools, named ``stem`` plus a
+        suffix (e.g. ``.svg``, ``.ply``, ``.scad``); return their paths. Default: none."""
+        return []
 
 
 def pad_programs(programs: Sequence[Sequence[int]], pad: int = 0,

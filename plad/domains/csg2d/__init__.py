@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from functools import cached_property
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -48,3 +49,12 @@ class CSG2D(Domain):
         from plad.data import load_cad
 
         return load_cad(data_dir, split)
+
+    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
+        """``<stem>.svg``: the program's primitives as vector shapes, its operations as masks."""
+        from plad.domains.csg2d.export import to_svg
+        from plad.fsutil import atomic_write_text
+
+        path = Path(f"{stem}.svg")
+        atomic_write_text(path, to_svg(ids))
+        return [path]

@@ -99,5 +99,15 @@ class CSG3D(Domain):
             raise ValueError(f"unknown export format {fmt!r} for csg3d; known: {', '.join(self.export_formats)}")
         return to_scad(self.parse(text))
 
+    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
+        """``<stem>.ply`` (marching-cubes mesh of the execution) and ``<stem>.scad`` (OpenSCAD)."""
+        from plad.domains.csg3d.export import save_mesh, to_scad
+        from plad.fsutil import atomic_write_text
+
+        mesh, scad = Path(f"{stem}.ply"), Path(f"{stem}.scad")
+        save_mesh(self.execute(torch.tensor([list(ids)]))[0].numpy(), mesh)
+        atomic_write_text(scad, to_scad(ids))
+        return [mesh, scad]
+
 
 __all__ = ["CSG3D"]

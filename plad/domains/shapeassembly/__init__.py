@@ -145,5 +145,16 @@ class ShapeAssembly(Domain):
                                  f"use .npy, .ply, .obj or .png")
         return f"{kind}: {len(cuboids)} cuboids, {int(grid.sum())} of {RES ** 3} voxels occupied"
 
+    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
+        """``<stem>.ply``: a mesh of the program's cuboids (the grid's centered unit-cube frame)."""
+        from plad.domains.shapeassembly.export import save_mesh
+
+        path = Path(f"{stem}.ply")
+        try:
+            save_mesh(token_cuboids(ids), path)
+        except ExecutionError:      # a singular frame: the program executes to nothing
+            return []
+        return [path]
+
 
 __all__ = ["ShapeAssembly", "token_cuboids"]
