@@ -6,6 +6,7 @@
     plad export csg3d "union cuboid 8 8 8 6 6 6 ellipsoid 12 10 9 8 6 4" --format scad -o shape.scad
     plad score csg2d --pred pred.npy --target target.npy
     plad data check | download
+    plad infer csg2d drawing.png shapes/ --beam 10 --out inferred/
     plad models
 
 Errors in the user's input are one line on stderr and a non-zero status
@@ -163,6 +164,39 @@ def cmd_data(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_infer(args: argparse.Namespace) -> int:
+    """Programs for the user's shapes; a bad file is reported and the others still processed."""
+    from plad.device import default_device
+    from plad.domains import get_domain
+    from plad.infer import ModelError, infer_items, resolve_model
+    from plad.inputs import read_inputs
+
+    domain = get_domain(args.domain)
+    if args.beam < 1:
+        raise UsageError(f"--beam must be at least 1, got {args.beam}")
+    items = read_inputs(args.inputs, tuple(domain.shape))
+    if not items:
+        raise UsageError(f"no supported files in {', '.join(args.inputs)}")
+    try:
+        model, source = resolve_model(args.domain, args.model, default_device())
+    except ModelError as err:
+        raise UsageError(str(err)) from None
+    print(f"model: {source}", file=sys.stderr)
+    results = infer_items(model, domain, items, args.beam, args.out)
+    failed = 0
+    for r in results:
+        where = r.item.source if r.item.source.name.startswith(r.item.name) else f"{r.item.source} [{r.item.name}]"
+        if r.ok:
+            notes = f"  ({'; '.join(r.item.notes)})" if r.item.notes else ""
+            print(f"{where}: {domain.metric.name} {r.value:.4f}  {r.program}{notes}")
+        else:
+            failed += 1
+            print(f"plad: error: {where}: {r.item.error}", file=sys.stderr)
+    print(f"{len(results) - failed} of {len(results)} shapes inferred; outputs and results.csv in {args.out}",
+          file=sys.stderr)
+    return 2 if failed else 0
+
+
 def cmd_models(args: argparse.Namespace) -> int:
     from plad.tracking import registered_models, tracking_uri
 
@@ -207,6 +241,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("action", choices=["check", "download"])
     p.add_argument("--data-dir", default=None, help="data directory (default: $PLAD_DATA_DIR or ./data/datasets)")
     p.set_defaults(func=cmd_data)
+
+    p = sub.add_parser("infer", help="infer programs for your own shapes (images, meshes, .npy; folders)")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="2D: .png/.jpg/... images or .npy; 3D: .obj/.ply/.off/.stl meshes or .npy voxels; "
+                        "a folder means all supported files in it")
+    p.add_argument("--model", default=None,
+                   help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion)")
+    p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
+    p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
+    p.set_defaults(func=cmd_infer)
 
     p = sub.add_parser("models", help="list the registered models (MLflow registry) with their test metric")
     p.set_defaults(func=cmd_models)

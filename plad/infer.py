@@ -1,0 +1,161 @@
+"""Inference on the user's own shapes: a model, shapes in, programs and files out (``plad infer``).
+
+The model is a checkpoint file or an MLflow model URI (``models:/plad-csg2d@champion``,
+``models:/plad-csg2d/3``, ``runs:/<id>/model``); without one, the registered
+champion of the domain. For every input shape the output folder gets:
+
+* ``<stem>.txt``: the program text (the domain's text form);
+* ``<stem>.png``: input and reconstruction side by side (3D: three depth views each);
+* ``<stem>.input.npy`` / ``<stem>.recon.npy``: the target shape as the model saw it
+  (fitted to the canvas or voxelized) and the program's execution, so that
+  ``plad score DOMAIN --pred <stem>.recon.npy --target <stem>.input.npy``
+  reproduces the metric;
+* the domain's exports (2D CSG: ``.svg``; 3D CSG: ``.ply`` and ``.scad``;
+  ShapeAssembly: ``.ply``);
+
+and ``results.csv`` has a row per input (file, status, metric, program,
+notes or error). A bad input is reported in its row and does not stop the others.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from plad.checkpoint import CheckpointError, load_model
+from plad.domains.base import Domain
+from plad.fsutil import atomic_write_text
+from plad.inputs import Item
+from plad.model import PLADNet
+
+
+class ModelError(Exception):
+    """The model cannot be found or used; one line."""
+
+
+def champion_uri(domain: str) -> str:
+    return f"models:/plad-{domain}@champion"
+
+
+def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple[PLADNet, str]:
+    """(model in eval mode, where it came from). Raises :class:`ModelError` with a one-line reason."""
+    ref = model or champion_uri(domain)
+    path = Path(ref)
+    if path.is_file():
+        try:
+            return load_model(path, device, expect_domain=domain)[0], str(path)
+        except CheckpointError as err:
+            raise ModelError(str(err)) from None
+    if ref.startswith(("models:/", "runs:/", "mlflow-artifacts:/")):
+        local = _download_checkpoint(ref)
+        try:
+            return load_model(local, device, expect_domain=domain)[0], ref
+        except CheckpointError as err:   # name the URI, not the temporary download
+            raise ModelError(f"{ref}: {str(err).removeprefix(f'{local}: ')}") from None
+    raise ModelError(f"{ref}: no such checkpoint file, and not an MLflow model URI (models:/NAME@ALIAS, "
+                     "models:/NAME/VERSION, runs:/RUN/model)")
+
+
+def _download_checkpoint(uri: str) -> Path:
+    """The checkpoint inside a logged PLAD model (its ``checkpoint`` artifact), downloaded locally."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    from plad.tracking import tracking_uri
+
+    mlflow.set_tracking_uri(tracking_uri())
+    dest = Path(tempfile.mkdtemp(prefix="plad-model-"))
+    try:
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dest)))
+    except MlflowException as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else err.__class__.__name__
+        hint = " (train and register one with `dvc repro`, or pass --model a checkpoint file)" \
+            if uri.startswith("models:/") else ""
+        raise ModelError(f"{uri}: not found in the MLflow store {tracking_uri()}: {first}{hint}") from None
+    found = sorted(local.rglob("*.pt")) if local.is_dir() else [local]
+    if not found:
+        raise ModelError(f"{uri}: a logged model without a PLAD checkpoint")
+    return found[0]
+
+
+@dataclass
+class Result:
+    item: Item
+    program: str | None = None
+    value: float | None = None
+    outputs: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.item.error is None
+
+
+def _write_outputs(domain: Domain, item: Item, ids: list[int], recon: np.ndarray, value: float,
+                   out: Path) -> tuple[str, ...]:
+    from plad.pictures import save_comparison
+
+    stem = out / item.name
+    program = domain.format(ids)
+    files = [stem.with_suffix(".txt"), stem.with_name(f"{item.name}.png"),
+             stem.with_name(f"{item.name}.input.npy"), stem.with_name(f"{item.name}.recon.npy")]
+    atomic_write_text(files[0], program + "\n")
+    metric = domain.metric
+    save_comparison([("input", item.shape), (f"program ({metric.name} {value:.3f})", recon)], files[1],
+                    title=_wrap(program))
+    np.save(files[2], item.shape)
+    np.save(files[3], recon)
+    files += domain.export_files(ids, stem)
+    return tuple(str(f) for f in files)
+
+
+def _wrap(text: str, width: int = 90) -> str:
+    return "\n".join(text[i:i + width] for i in range(0, len(text), width))
+
+
+def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
+                batch_size: int = 16, progress: bool = True) -> list[Result]:
+    """Best-of-beam programs for the good items, their output files, and ``results.csv``."""
+    from tqdm import tqdm
+
+    from plad.search import infer_programs
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = next(model.parameters()).device
+    results = {id(it): Result(it) for it in items}
+    good = [it for it in items if it.error is None]
+    with tqdm(total=len(good), desc="infer", unit="shape", disable=not progress or None) as bar:
+        for start in range(0, len(good), batch_size):
+            chunk = good[start:start + batch_size]
+            targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
+            inferred = infer_programs(model, domain, targets, beam)
+            for j, it in enumerate(chunk):
+                value = float(inferred.values[j])
+                recon = inferred.shapes[j].cpu().numpy()
+                r = results[id(it)]
+                r.program, r.value = domain.format(inferred.programs[j]), value
+                try:
+                    r.outputs = _write_outputs(domain, it, inferred.programs[j], recon, value, out)
+                except OSError as err:
+                    it.error = f"could not write its outputs ({err})"
+            bar.update(len(chunk))
+    ordered = [results[id(it)] for it in items]
+    write_csv(ordered, domain, out / "results.csv")
+    return ordered
+
+
+def write_csv(results: list[Result], domain: Domain, path: Path) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["file", "name", "status", domain.metric.name, "program", "notes"])
+    for r in results:
+        it = r.item
+        w.writerow([str(it.source), it.name, "ok" if r.ok else "error",
+                    "" if r.value is None else f"{r.value:.6f}", r.program or "",
+                    it.error if it.error else "; ".join(it.notes)])
+    atomic_write_text(path, buf.getvalue())
