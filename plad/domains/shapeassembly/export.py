@@ -25,13 +25,9 @@ def mesh_arrays(cuboids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def save_mesh(cuboids: np.ndarray, path: str | Path) -> None:
     """Write the cuboids as one triangle mesh (.ply or .obj) with open3d."""
-    import open3d as o3d
+    from plad.meshio import write_mesh
 
-    verts, faces = mesh_arrays(cuboids)
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(faces))
-    mesh.compute_vertex_normals()
-    if not o3d.io.write_triangle_mesh(str(path), mesh):
-        raise OSError(f"open3d could not write {path}")
+    write_mesh(*mesh_arrays(cuboids), path)
 
 
 def save_views(cuboids: np.ndarray, path: str | Path, title: str | None = None) -> None:
