@@ -50,13 +50,12 @@ def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
         raise UsageError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix == ".npy":
+        from plad.inputs import InputError, read_npy
+
         try:
-            array = np.load(path, allow_pickle=False)
-        except Exception as err:  # numpy raises several types for bad files
-            raise UsageError(f"{path}: not a readable .npy file ({err.__class__.__name__}: {err})") from None
-        if array.dtype.kind not in "biuf":
-            raise UsageError(f"{path}: expected a numeric or bool array, got dtype {array.dtype}")
-        array = array != 0
+            array = read_npy(path)
+        except InputError as err:
+            raise UsageError(f"{path}: {err}") from None
     elif suffix in (".png", ".jpg", ".jpeg", ".bmp", ".gif"):
         from PIL import Image, UnidentifiedImageError
 

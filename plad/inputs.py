@@ -154,11 +154,12 @@ def voxelize_mesh(path: Path, shape: tuple[int, int, int]) -> tuple[np.ndarray, 
 
 
 # ---- any domain -----------------------------------------------------------------------------------
-def _read_npy(path: Path) -> np.ndarray:
+def read_npy(path: Path) -> np.ndarray:
+    """A numeric or bool .npy array as bool (nonzero inside)."""
     try:
         array = np.load(path, allow_pickle=False)
     except Exception as err:  # numpy raises several types for bad files
-        raise InputError(f"not a readable .npy file ({err.__class__.__name__})") from None
+        raise InputError(f"not a readable .npy file ({err.__class__.__name__}: {err})") from None
     if array.dtype.kind not in "biuf":
         raise InputError(f"expected a numeric or bool array, got dtype {array.dtype}")
     return array != 0
@@ -173,7 +174,7 @@ def _items_of(path: Path, shape: tuple[int, ...], name: str) -> list[Item]:
             raise InputError(f"unsupported file type {suffix or '(none)'!r}; use "
                              f"{', '.join(supported_suffixes(shape))}")
         if suffix == ".npy":
-            array = _read_npy(path)
+            array = read_npy(path)
             batch = array if array.ndim == len(shape) + 1 else array[None]
             if batch.ndim != len(shape) + 1 or (len(shape) == 3 and batch.shape[1:] != shape):
                 want = "x".join(map(str, shape))
