@@ -21,6 +21,12 @@ os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("DVC_NO_ANALYTICS", "1")
+# Under pytest-xdist the workers share the machine's cores: one intra-op thread per worker (and
+# per stage subprocess it starts, through the environment) instead of each worker oversubscribing
+# every core, which made the two-worker run slower than the sum of its halves suggests.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("MKL_NUM_THREADS", "1")
 # Stage runs in tests must never write into the developer's own MLflow store.
 os.environ.setdefault("MLFLOW_TRACKING_URI",
                       f"sqlite:///{tempfile.mkdtemp(prefix='plad-test-mlflow-')}/mlflow.db")
@@ -55,6 +61,13 @@ def datasets_dir() -> Path:
             pytest.fail(f"PLAD_DATA_DIR={env} does not exist")
         return path
     return require_shared("datasets")
+
+
+def pytest_configure(config):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch  # a plugin may have imported torch before the environment above was set
+
+        torch.set_num_threads(1)
 
 
 def pytest_collection_modifyitems(config, items):
