@@ -24,6 +24,7 @@ os.environ.setdefault("DVC_NO_ANALYTICS", "1")
 # Under pytest-xdist the workers share the machine's cores: one intra-op thread per worker (and
 # per stage subprocess it starts, through the environment) instead of each worker oversubscribing
 # every core, which made the two-worker run slower than the sum of its halves suggests.
+# (torch is not imported before this file, so the environment is enough.)
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -61,13 +62,6 @@ def datasets_dir() -> Path:
             pytest.fail(f"PLAD_DATA_DIR={env} does not exist")
         return path
     return require_shared("datasets")
-
-
-def pytest_configure(config):
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        import torch  # a plugin may have imported torch before the environment above was set
-
-        torch.set_num_threads(1)
 
 
 def pytest_collection_modifyitems(config, items):
