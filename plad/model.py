@@ -38,6 +38,13 @@ class ModelConfig:
     dim_ff: int = 1024
     dropout: float = 0.1
     enc_channels: tuple[int, ...] = (32, 64, 128, 256)
+    #: batch normalization after every encoder convolution
+    enc_norm: bool = False
+    #: append the voxel/pixel coordinates in [-1, 1] as input channels (CoordConv): parameters are
+    #: positions and sizes, which translation-equivariant convolutions and max-pooling blur
+    coord_channels: bool = False
+    #: encoder kernel size (None: 3 in 2D, the paper's 4 in 3D); padding is kernel // 2
+    enc_kernel: int | None = None
 
     def __post_init__(self) -> None:
         self.input_shape = tuple(self.input_shape)
@@ -62,11 +69,12 @@ class ModelConfig:
 
 
 class CNNEncoder(nn.Module):
-    """Conv blocks (conv, ReLU, max-pool, channel dropout) -> visual tokens (N, P, d_model).
+    """Conv blocks (conv, [batch norm], ReLU, max-pool, channel dropout) -> visual tokens (N, P, d_model).
 
     2D: 3x3 convolutions, 64 -> 4 after four poolings: 16 tokens.
     3D (paper): kernel 4, padding 2, 32 -> 2 after four poolings: 8 tokens,
-    followed by a 3-layer MLP.
+    followed by a 3-layer MLP. One pooling per entry of ``enc_channels``: three
+    blocks leave 4^3 = 64 visual tokens, one per region of the grid.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -77,15 +85,26 @@ class CNNEncoder(nn.Module):
         # Channel-wise dropout on feature maps: per-element dropout there cost
         # ~40% of a CPU training step (one random number per activation).
         drop = nn.Dropout2d if dims == 2 else nn.Dropout3d
-        kernel, pad = (3, 1) if dims == 2 else (4, 2)
+        kernel = cfg.enc_kernel or (3 if dims == 2 else 4)
+        pad = kernel // 2
+        norm = nn.BatchNorm2d if dims == 2 else nn.BatchNorm3d
         layers: list[nn.Module] = []
-        c_in = 1
+        in_channels = c_in = 1 + (dims if cfg.coord_channels else 0)
         for c in cfg.enc_channels:
-            layers += [conv(c_in, c, kernel, padding=pad), nn.ReLU(), pool(2), drop(cfg.dropout)]
+            layers += [conv(c_in, c, kernel, padding=pad, bias=not cfg.enc_norm)]
+            layers += [norm(c)] if cfg.enc_norm else []
+            layers += [nn.ReLU(), pool(2), drop(cfg.dropout)]
             c_in = c
         self.net = nn.Sequential(*layers)
+        if cfg.coord_channels:
+            axes = torch.meshgrid(*(torch.linspace(-1, 1, n) for n in cfg.input_shape), indexing="ij")
+            self.register_buffer("coords", torch.stack(axes)[None], persistent=False)  # (1, dims, *spatial)
+        else:
+            self.coords = None
         with torch.no_grad():
-            out = self.net(torch.zeros(1, 1, *cfg.input_shape))
+            # probe in eval mode: a training-mode probe would move the batch-norm running statistics
+            out = self.net.eval()(torch.zeros(1, in_channels, *cfg.input_shape))
+            self.net.train()
         self.num_tokens = int(math.prod(out.shape[2:]))
         self.mlp = nn.Sequential(
             nn.Linear(c_in, cfg.d_model), nn.ReLU(), nn.Dropout(cfg.dropout),
@@ -93,7 +112,10 @@ class CNNEncoder(nn.Module):
             nn.Linear(cfg.d_model, cfg.d_model))
 
     def forward(self, shapes: torch.Tensor) -> torch.Tensor:
-        x = self.net(shapes.float().unsqueeze(1))                  # (N, C, *spatial)
+        x = shapes.float().unsqueeze(1)                             # (N, 1, *spatial)
+        if self.coords is not None:
+            x = torch.cat([x, self.coords.expand(len(x), -1, *self.coords.shape[2:])], 1)
+        x = self.net(x)                                             # (N, C, *spatial)
         x = x.flatten(2).transpose(1, 2)                            # (N, P, C)
         return self.mlp(x)
 

@@ -168,3 +168,42 @@ def test_best_of_beam_picks_the_best_candidate_by_the_metric(trained):
     assert torch.allclose(inferred.values, values.min(1).values.double())
     again = DOMAIN.metric(DOMAIN.execute(pad_programs(inferred.programs)), targets)
     assert torch.allclose(again, inferred.values)
+
+
+def test_encoder_options_normalization_coordinates_and_kernel():
+    """Batch norm, coordinate channels and the kernel size change the encoder, not the interface."""
+    torch.manual_seed(0)
+    for shape in [(64, 64), (32, 32, 32)]:
+        plain = PLADNet(tiny_config(input_shape=shape))
+        model = PLADNet(tiny_config(input_shape=shape, enc_norm=True, coord_channels=True, enc_kernel=3))
+        assert model.num_visual == plain.num_visual
+        first = model.encoder.net[0]
+        assert first.in_channels == 1 + len(shape) and first.kernel_size[0] == 3 and first.bias is None
+        norms = [m for m in model.encoder.net if isinstance(m, (torch.nn.BatchNorm2d, torch.nn.BatchNorm3d))]
+        assert len(norms) == 4
+        # building the model (which probes the encoder's output size) leaves the running statistics alone
+        assert all(torch.equal(n.running_mean, torch.zeros_like(n.running_mean)) for n in norms)
+        # coordinates are a non-persistent buffer: checkpoints hold weights only
+        assert not any("coords" in k for k in model.state_dict())
+        # the coordinates make the encoding position-aware: a shape and its shifted copy differ
+        x = torch.zeros(2, *shape, dtype=torch.bool)
+        x[(0,) + tuple(slice(4, 10) for _ in shape)] = True
+        x[(1,) + tuple(slice(20, 26) for _ in shape)] = True
+        with torch.no_grad():
+            prefix = model.eval().encode(x)
+        assert prefix.shape == (2, model.num_visual, model.cfg.d_model)
+        assert not torch.allclose(prefix[0], prefix[1])
+
+
+def test_checkpoint_with_encoder_options_round_trips(tmp_path):
+    csg3d = get_domain("csg3d")
+    cfg = tiny_config(vocab_size=len(csg3d.tokens), max_len=csg3d.tokens.max_len, input_shape=csg3d.shape,
+                      enc_norm=True, coord_channels=True, enc_kernel=3)
+    model = PLADNet(cfg)
+    model.train()(torch.rand(8, 32, 32, 32) > 0.5, torch.full((8, 1), cfg.bos))  # moves the running statistics
+    path = save_checkpoint(tmp_path / "m.pt", model, "csg3d", csg3d.tokens.names)
+    loaded, _ = load_model(path)
+    assert loaded.cfg == cfg
+    x = torch.rand(3, 32, 32, 32) > 0.6
+    with torch.no_grad():
+        assert torch.allclose(loaded.eval().encode(x), model.eval().encode(x))

@@ -41,6 +41,9 @@ class ModelSection:
     dim_ff: int = 256
     dropout: float = 0.1
     enc_channels: list[int] = field(default_factory=lambda: [8, 16, 32, 64])
+    enc_norm: bool = False
+    coord_channels: bool = False
+    enc_kernel: int | None = None
 
 
 @dataclass
