@@ -139,6 +139,8 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
                 recon = inferred.shapes[j].cpu().numpy()
                 r = results[id(it)]
                 r.program, r.value = domain.format(inferred.programs[j]), value
+                if not recon.any():
+                    it.notes.append("the inferred program executes to an empty shape")
                 try:
                     r.outputs = _write_outputs(domain, it, inferred.programs[j], recon, value, out)
                 except OSError as err:

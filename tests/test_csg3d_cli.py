@@ -3,6 +3,7 @@ import re
 
 import numpy as np
 import pytest
+import torch
 
 from plad.cli import main
 from plad.domains import get_domain
@@ -161,3 +162,14 @@ def test_export_cli_writes_the_file_or_stdout(tmp_path, capsys):
     assert out.read_text() == to_scad(DOMAIN.parse(PROGRAM))
     assert main(["export", "csg3d", PROGRAM, "--format", "scad"]) == 0
     assert capsys.readouterr().out == out.read_text()
+
+
+def test_export_files_of_a_program_that_executes_to_nothing(tmp_path):
+    """Disjoint intersection: no surface to mesh, so only the OpenSCAD file is written (inference keeps going)."""
+    ids = DOMAIN.parse("inter cuboid 6 6 6 4 4 4 cuboid 26 26 26 4 4 4")
+    assert not DOMAIN.execute(torch.tensor([ids]))[0].any()
+    files = DOMAIN.export_files(ids, tmp_path / "empty")
+    assert files == [tmp_path / "empty.scad"] and files[0].read_text().count("intersection") == 1
+    assert not (tmp_path / "empty.ply").exists()
+    ids = DOMAIN.parse(PROGRAM)
+    assert [f.suffix for f in DOMAIN.export_files(ids, tmp_path / "full")] == [".ply", ".scad"]

@@ -100,13 +100,19 @@ class CSG3D(Domain):
         return to_scad(self.parse(text))
 
     def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
-        """``<stem>.ply`` (marching-cubes mesh of the execution) and ``<stem>.scad`` (OpenSCAD)."""
+        """``<stem>.ply`` (marching-cubes mesh of the execution) and ``<stem>.scad`` (OpenSCAD).
+
+        A program that executes to an empty grid has no surface: only its ``.scad`` is written.
+        """
         from plad.domains.csg3d.export import save_mesh, to_scad
         from plad.fsutil import atomic_write_text
 
         mesh, scad = Path(f"{stem}.ply"), Path(f"{stem}.scad")
-        save_mesh(self.execute(torch.tensor([list(ids)]))[0].numpy(), mesh)
         atomic_write_text(scad, to_scad(ids))
+        grid = self.execute(torch.tensor([list(ids)]))[0].numpy()
+        if not grid.any():
+            return [scad]
+        save_mesh(grid, mesh)
         return [mesh, scad]
 
 
