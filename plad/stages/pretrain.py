@@ -27,23 +27,8 @@ from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
 from plad.stages import stage_main
-from plad.model import ModelConfig, PLADNet, count_parameters
+from plad.model import Architecture, ModelConfig, PLADNet, count_parameters
 from plad.train import TrainConfig, fit
-
-
-@dataclass
-class ModelSection:
-    """Architecture knobs; vocabulary, length cap and input shape come from the domain."""
-
-    d_model: int = 128
-    n_layers: int = 3
-    n_heads: int = 4
-    dim_ff: int = 256
-    dropout: float = 0.1
-    enc_channels: list[int] = field(default_factory=lambda: [8, 16, 32, 64])
-    enc_norm: bool = False
-    coord_channels: bool = False
-    enc_kernel: int | None = None
 
 
 @dataclass
@@ -58,14 +43,8 @@ class PretrainConfig:
     seed: int = 0
     #: synthetic validation shapes decoded greedily each epoch for the domain metric
     val_metric_shapes: int = 200
-    model: ModelSection = field(default_factory=ModelSection)
+    model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
-
-
-def model_config(domain, section_cfg: ModelSection) -> ModelConfig:
-    return ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                       input_shape=domain.shape, **{**asdict(section_cfg),
-                                                    "enc_channels": tuple(section_cfg.enc_channels)})
 
 
 def load_programs(path: Path) -> dict[str, torch.Tensor]:
@@ -93,7 +72,7 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     torch.manual_seed(cfg.seed)
     data = load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")
     train, val = data["train"], data["val"]
-    model = PLADNet(model_config(domain, cfg.model)).to(device)
+    model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     out = Path(cfg.out_dir) / cfg.domain
     out.mkdir(parents=True, exist_ok=True)
     history = out / "history.csv"
