@@ -60,7 +60,7 @@ def trained(tmp_path_factory, programs):
     result = fit(model, synthetic_batches(programs[:-256]), validate,
                  TrainConfig(batch_size=64, lr=3e-3, steps_per_epoch=40, max_epochs=5, patience=5),
                  out, domain="csg2d", token_names=DOMAIN.tokens.names,
-                 on_epoch=lambda e, m: history.append(m))
+                 on_unit=lambda e, row: history.append(row))
     return model, history, result, out
 
 
@@ -85,10 +85,13 @@ def test_training_lowers_the_loss(trained):
     _, history, result, _ = trained
     assert history[-1]["val_loss"] < history[0]["val_loss"] - 0.2
     assert history[-1]["train_loss"] < history[0]["train_loss"]
-    assert result.best_epoch >= 4
+    assert result.best_unit >= 4
+    assert [row["unit"] for row in history] == [1, 2, 3, 4, 5]
+    assert all(row["val"] == row["val_loss"] for row in history)   # pretraining selects on the loss
 
 
-def test_resume_after_a_kill_continues_identically(tmp_path, programs):
+@pytest.mark.parametrize("written_by", ["this version", "a version before plad.loop"])
+def test_resume_after_a_kill_continues_identically(tmp_path, programs, written_by):
     cfg = dict(batch_size=32, lr=1e-3, steps_per_epoch=5, patience=10)
     val_batch = next(synthetic_batches(programs[:64], batch_size=64)(0))
 
@@ -105,6 +108,12 @@ def test_resume_after_a_kill_continues_identically(tmp_path, programs):
 
     straight = run(tmp_path / "a", 3)
     run(tmp_path / "b", 1)          # "killed" after one epoch
+    if written_by != "this version":   # the loop state as the earlier fit() wrote it
+        payload = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
+        s = payload.pop("loop")
+        payload["train_state"] = {"epoch": s["unit"], "best": s["best"], "best_epoch": s["best_unit"],
+                                  "bad_epochs": s["since_best"], "seconds": s["seconds"]}
+        torch.save(payload, tmp_path / "b" / "last.pt")
     resumed = run(tmp_path / "b", 3)  # the same command again
     for k in straight:
         assert torch.equal(straight[k], resumed[k]), k

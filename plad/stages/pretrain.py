@@ -26,8 +26,8 @@ from plad.config import ConfigError
 from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
-from plad.stages import stage_main
 from plad.model import Architecture, ModelConfig, PLADNet, count_parameters
+from plad.stages import stage_main
 from plad.train import TrainConfig, fit
 
 
@@ -102,16 +102,20 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
         values = metric(domain.execute(pad_programs(decoded, device=device)), shapes)
         return {"val_loss": tot / n, "val_acc": acc / n, f"val_{metric.name}": float(values.mean())}
 
-    def record(epoch: int, metrics: dict[str, float]) -> None:
-        row = {"epoch": epoch, **{k: round(v, 6) for k, v in metrics.items()}}
+    def record(unit: int, row: dict[str, float]) -> None:
+        # history.csv keeps its columns (DVC plots it: x epoch, y val_loss); the loop's own
+        # bookkeeping (unit, val, seconds) is in last.pt
+        metrics = {k: v for k, v in row.items() if k not in ("unit", "val", "seconds", "unit_seconds")}
+        metrics["epoch_seconds"] = row["unit_seconds"]
+        line = {"epoch": unit, **{k: round(v, 6) for k, v in metrics.items()}}
         new = not history.exists()
         with history.open("a", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(row))
+            writer = csv.DictWriter(fh, fieldnames=list(line))
             if new:
                 writer.writeheader()
-            writer.writerow(row)
+            writer.writerow(line)
         if on_epoch:
-            on_epoch(epoch, metrics)
+            on_epoch(unit, metrics)
 
     # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
@@ -122,10 +126,9 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
-                 objective="val_loss", on_epoch=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint)
+                 on_unit=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint)
     final = validate(model)
-    summary = {"domain": cfg.domain, "parameters": count_parameters(model), "best_epoch": result.best_epoch,
-               "epochs": result.epochs, "stopped": result.stopped, "train_seconds": round(result.seconds, 1),
+    summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
                **{k: round(v, 6) for k, v in final.items()}}
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
