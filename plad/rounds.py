@@ -56,9 +56,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RoundsConfig:
-    """Settings of the PLAD rounds (params ``finetune.<domain>.plad``)."""
+    """Settings of the PLAD rounds (params ``finetune.<domain>.plad``); the P_BEST mode is the method's."""
 
-    pbest_mode: str = "all-time"
     infer_beam: int = 5
     infer_batch: int = 100
     val_beam_epoch: int = 3
@@ -68,8 +67,7 @@ class RoundsConfig:
     round_patience: int = 1000
     #: minimum improvement of the validation metric that counts
     min_delta: float = 0.005
-    train: TrainConfig = field(default_factory=lambda: TrainConfig(batch_size=100, lr=1e-3, steps_per_epoch=100,
-                                                                    max_epochs=100, patience=10))
+    train: TrainConfig = field(default_factory=TrainConfig)
     ws: WSConfig = field(default_factory=WSConfig)
 
 

@@ -34,6 +34,12 @@ VAL_LOSS = Objective("val_loss", higher_is_better=False)
 
 @dataclass
 class TrainConfig:
+    """One epoch-based MLE training loop. The only set of defaults: profiles set every key.
+
+    There is no budget here: a run has one budget knob (``pretrain.max_minutes``,
+    ``finetune.max_minutes``), and a PLAD round trains within what is left of it.
+    """
+
     batch_size: int = 128
     lr: float = 1e-3
     steps_per_epoch: int = 500
@@ -46,8 +52,6 @@ class TrainConfig:
     lr_factor: float = 0.5
     min_lr: float = 1e-5
     grad_clip: float = 1.0
-    #: budget in minutes of training time, counted across resumes (None: no budget)
-    max_minutes: float | None = None
 
 
 def _rng_state() -> dict:
@@ -102,15 +106,13 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     number so that a resumed run sees the same data. ``validate(model)``
     returns metrics including ``objective.name``, the value selected on. The
     best weights are written to ``out_dir/best.pt`` and loaded back into
-    ``model`` at the end. ``budget_seconds`` (and ``cfg.max_minutes``) count
-    training time across resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
+    ``model`` at the end. ``budget_seconds`` counts training time across
+    resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
     validation metrics, ``lr``). ``fingerprint`` identifies the run's settings:
     a ``last.pt`` written under another fingerprint is not resumed.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if cfg.max_minutes is not None:
-        budget_seconds = min(budget_seconds, cfg.max_minutes * 60)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
         opt, mode="max" if objective.higher_is_better else "min", factor=cfg.lr_factor, patience=cfg.lr_patience,

@@ -26,6 +26,7 @@ from plad.config import ConfigError
 from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
+from plad.loop import budget_seconds
 from plad.model import Architecture, ModelConfig, PLADNet, count_parameters
 from plad.stages import stage_main
 from plad.train import TrainConfig, fit
@@ -43,6 +44,8 @@ class PretrainConfig:
     seed: int = 0
     #: synthetic validation shapes decoded greedily each epoch for the domain metric
     val_metric_shapes: int = 200
+    #: budget of training time, minutes, counted across resumes (None: none)
+    max_minutes: float | None = None
     model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -126,7 +129,8 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
-                 on_unit=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint)
+                 budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
+                 fingerprint=fingerprint)
     final = validate(model)
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
