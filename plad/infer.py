@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import io
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from plad.domains.base import Domain
 from plad.fsutil import atomic_write_text
 from plad.inputs import Item
 from plad.model import PLADNet
+from plad.tracking import download_checkpoint, is_model_uri
 
 
 class ModelError(Exception):
@@ -51,7 +51,7 @@ def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple
             return load_model(path, device, expect_domain=domain)[0], str(path)
         except CheckpointError as err:
             raise ModelError(str(err)) from None
-    if ref.startswith(("models:/", "runs:/", "mlflow-artifacts:/")):
+    if is_model_uri(ref):
         local = _download_checkpoint(ref)
         try:
             return load_model(local, device, expect_domain=domain)[0], ref
@@ -62,25 +62,15 @@ def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple
 
 
 def _download_checkpoint(uri: str) -> Path:
-    """The checkpoint inside a logged PLAD model (its ``checkpoint`` artifact), downloaded locally."""
-    import mlflow
-    from mlflow.exceptions import MlflowException
-
-    from plad.tracking import tracking_uri
-
-    mlflow.set_tracking_uri(tracking_uri())
-    dest = Path(tempfile.mkdtemp(prefix="plad-model-"))
+    """The checkpoint inside a logged PLAD model, downloaded locally; :class:`ModelError` when it cannot be had."""
     try:
-        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dest)))
-    except MlflowException as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else err.__class__.__name__
+        return download_checkpoint(uri)
+    except LookupError as err:   # not in the store
         hint = " (train and register one with `dvc repro`, or pass --model a checkpoint file)" \
             if uri.startswith("models:/") else ""
-        raise ModelError(f"{uri}: not found in the MLflow store {tracking_uri()}: {first}{hint}") from None
-    found = sorted(local.rglob("*.pt")) if local.is_dir() else [local]
-    if not found:
-        raise ModelError(f"{uri}: a logged model without a PLAD checkpoint")
-    return found[0]
+        raise ModelError(f"{err}{hint}") from None
+    except ValueError as err:    # a logged model without a checkpoint
+        raise ModelError(str(err)) from None
 
 
 @dataclass
