@@ -53,7 +53,7 @@ def evaluate(cfg: EvaluateConfig) -> dict:
     from plad.domains import get_domain
     from plad.search import infer_batched
     from plad.stages.prepare import load_prepared
-    from plad.viz import pair_grid, save_png
+    from plad.pictures import pair_grid, save_png
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
