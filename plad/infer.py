@@ -25,12 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from plad.checkpoint import CheckpointError, load_model
 from plad.domains.base import Domain
 from plad.fsutil import atomic_write_text
 from plad.inputs import Item
 from plad.model import PLADNet
+from plad.pictures import save_comparison
+from plad.search import infer_programs
 from plad.tracking import download_checkpoint, is_model_uri
 
 
@@ -87,8 +90,6 @@ class Result:
 
 def _write_outputs(domain: Domain, item: Item, ids: list[int], recon: np.ndarray, value: float,
                    out: Path) -> tuple[str, ...]:
-    from plad.pictures import save_comparison
-
     stem = out / item.name
     program = domain.format(ids)
     files = [stem.with_suffix(".txt"), stem.with_name(f"{item.name}.png"),
@@ -110,10 +111,6 @@ def _wrap(text: str, width: int = 90) -> str:
 def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
                 batch_size: int = 16, progress: bool = True) -> list[Result]:
     """Best-of-beam programs for the good items, their output files, and ``results.csv``."""
-    from tqdm import tqdm
-
-    from plad.search import infer_programs
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = next(model.parameters()).device

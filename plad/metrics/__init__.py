@@ -8,6 +8,8 @@ from typing import Any, Callable
 
 import torch
 
+from plad.metrics.chamfer import PENALTY, TargetFeatures, chamfer, chamfer_against
+
 
 @dataclass(frozen=True)
 class Metric:
@@ -64,8 +66,6 @@ IOU = Metric("iou", higher_is_better=True, fn=iou, worst=0.0)
 
 def chamfer_metric() -> Metric:
     """CSGNet's Chamfer distance on 64x64 canvases (lower is better)."""
-    from plad.metrics.chamfer import PENALTY, TargetFeatures, chamfer, chamfer_against
-
     return Metric("chamfer", higher_is_better=False, fn=chamfer, worst=PENALTY,
                   prepare=TargetFeatures.of, against=chamfer_against)
 
