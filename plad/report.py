@@ -91,7 +91,8 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
         res = MethodResult(key, ev.metrics.get(f"test_{metric}") if ev else None)
         ft = latest("finetune", key)
         if ft is not None:
-            res.curve = sorted((float(step), float(value)) for step, value in metric_history(ft.run_id, "val_at_seconds"))
+            history = metric_history(ft.run_id, "val_at_seconds")
+            res.curve = sorted((float(step), float(value)) for step, value in history)
             m = ft.metrics
             res.train_seconds = m.get("train_seconds")
             res.rounds = int(m["rounds"]) if "rounds" in m else (int(m["epochs"]) if "epochs" in m else None)

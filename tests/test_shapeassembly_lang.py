@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from plad.domains.shapeassembly.execute import (BlockState, Cuboid, _nearest_pair, nearest_pair_brute,
-                                                run_text)
+from plad.domains.shapeassembly.execute import BlockState, Cuboid, _nearest_pair, nearest_pair_brute, run_text
 from plad.domains.shapeassembly.lang import SAParseError, parse_program
 from plad.domains.shapeassembly.voxels import normalization, voxelize
 from plad.grammar import ProgramError

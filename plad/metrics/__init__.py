@@ -3,8 +3,9 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
 

@@ -69,9 +69,9 @@ from __future__ import annotations
 import math
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
@@ -567,7 +567,7 @@ class TargetFeatures:
     degenerate: torch.Tensor
 
     @staticmethod
-    def of(targets: torch.Tensor) -> "TargetFeatures":
+    def of(targets: torch.Tensor) -> TargetFeatures:
         if targets.dim() != 3:
             raise ValueError(f"targets must be (N, H, W), got {tuple(targets.shape)}")
         t, _ = _as_batch(targets)
@@ -597,7 +597,7 @@ class TargetFeatures:
         """(H, W) of the targets."""
         return self.edges.shape[0], self.edges.shape[2]
 
-    def to(self, device: torch.device | str) -> "TargetFeatures":
+    def to(self, device: torch.device | str) -> TargetFeatures:
         return TargetFeatures(*(x.to(device) for x in (self.edges, self.dist, self.counts, self.degenerate)))
 
 

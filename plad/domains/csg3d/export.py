@@ -6,8 +6,8 @@ indexed [x, y, z] is centered at (i, j, k), so a mesh or SCAD solid lies in
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

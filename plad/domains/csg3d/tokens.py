@@ -25,8 +25,8 @@ The paper's names ``intersect``/``subtract`` (and ``intersection``/
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Sequence
 
 from plad.grammar import ProgramError, Token, TokenTable
 

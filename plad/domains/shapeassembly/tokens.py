@@ -27,8 +27,8 @@ END); ``C{m}`` a cuboid reference made by mover m; ``N``, ``face``, ``fpos``,
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Sequence
 
 from plad.domains.shapeassembly.lang import AXES, FACES, Stmt
 from plad.grammar import ProgramError, Token, TokenTable
