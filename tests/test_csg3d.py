@@ -95,7 +95,7 @@ def test_check_rejects_incomplete_and_overlong_id_sequences():
         DOMAIN.check(TABLE.encode("cuboid 1 1 1 2 2 2 7".split()))
 
 
-# ---- executor: exact voxels of the spec's inside tests ------------------------------------
+# ---- executor: exact voxels of the inside tests (docs/domains.md) --------------------------
 def box(x0, x1, y0, y1, z0, z1):
     """Inclusive voxel index ranges -> bool grid."""
     g = np.zeros((32, 32, 32), bool)

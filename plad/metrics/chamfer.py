@@ -7,7 +7,7 @@ CSGNet scores a predicted canvas P against a target T (bool 64 x 64) as
     CD = ( sum(D_T * E_P) / (sum(E_P) + 1) + sum(D_P * E_T) / (sum(E_T) + 1) ) / 2
 
 with a fixed penalty of 16 when an image or an edge map is empty or full
-(../shared/specs/csg2d.md, "Metric"). This module computes the same without
+(docs/domains.md, "Metric: Chamfer distance"). This module computes the same without
 OpenCV, on CPU or CUDA tensors, for thousands of pairs per call.
 
 Canny on a {0, 255} image
