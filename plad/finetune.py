@@ -31,9 +31,9 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -46,8 +46,7 @@ from plad.model import PLADNet
 from plad.pbest import PBest
 from plad.search import infer_batched
 from plad.train import TrainConfig, fit
-from plad.ws import WSConfig, load_generator, new_generator, sample_dataset, save_generator, train_generator, \
-    ws_source
+from plad.ws import WSConfig, load_generator, new_generator, sample_dataset, save_generator, train_generator, ws_source
 
 log = logging.getLogger(__name__)
 

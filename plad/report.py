@@ -8,10 +8,15 @@ either. Rendering is a pure function of those records.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from plad.domains import get_domain
+from plad.fsutil import atomic_write
+from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
 #: Table 1 of the paper (test set, beam 10): 2D CSG Chamfer distance, 3D IoU x 100.
 PAPER_TABLE = {
@@ -47,8 +52,6 @@ class MethodResult:
 
 def scale(domain: str) -> float:
     """Table values: IoU is reported x 100, Chamfer distance as is."""
-    from plad.domains import get_domain
-
     return 100.0 if get_domain(domain).metric.higher_is_better else 1.0
 
 
@@ -76,37 +79,24 @@ def from_files(domain: str, keys: list[str], results_dir: str | Path, finetune_d
 
 def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> list[MethodResult]:
     """The same records from the MLflow store alone (latest finished run per stage and method)."""
-    import mlflow
-
-    from plad.domains import get_domain
-    from plad.tracking import DEFAULT_EXPERIMENT, tracking_uri
-
-    mlflow.set_tracking_uri(tracking_uri())
-    client = mlflow.MlflowClient()
-    exp = client.get_experiment_by_name(experiment or DEFAULT_EXPERIMENT)
-    if exp is None:
-        raise LookupError(f"no MLflow experiment {experiment or DEFAULT_EXPERIMENT!r} at {tracking_uri()}")
+    experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)   # LookupError naming the store
     metric = get_domain(domain).metric.name
 
-    def latest(stage: str, key: str):
-        runs = client.search_runs([exp.experiment_id],
-                                  f"tags.`plad.stage` = '{stage}' and tags.`plad.method` = '{key}' and "
-                                  f"tags.`plad.domain` = '{domain}' and attributes.status = 'FINISHED'",
-                                  order_by=["attributes.end_time DESC"], max_results=1)
-        return runs[0] if runs else None
+    def latest(stage: str, key: str) -> RunRecord | None:
+        return latest_finished_run(experiment_id, {"plad.stage": stage, "plad.method": key, "plad.domain": domain})
 
     out = []
     for key in keys:
         ev = latest("evaluate", key)
-        res = MethodResult(key, ev.data.metrics.get(f"test_{metric}") if ev else None)
+        res = MethodResult(key, ev.metrics.get(f"test_{metric}") if ev else None)
         ft = latest("finetune", key)
         if ft is not None:
-            hist = client.get_metric_history(ft.info.run_id, "val_at_seconds")
-            res.curve = sorted((float(m.step), float(m.value)) for m in hist)
-            m = ft.data.metrics
+            history = metric_history(ft.run_id, "val_at_seconds")
+            res.curve = sorted((float(step), float(value)) for step, value in history)
+            m = ft.metrics
             res.train_seconds = m.get("train_seconds")
             res.rounds = int(m["rounds"]) if "rounds" in m else (int(m["epochs"]) if "epochs" in m else None)
-            res.stopped = ft.data.tags.get("plad.stopped")
+            res.stopped = ft.tags.get("plad.stopped")
             res.val_best = m.get(f"val_{metric}")
         out.append(res)
     return out
@@ -122,8 +112,6 @@ def _fmt(v: float | None, digits: int) -> str:
 
 def _column(domain: str) -> tuple[str, float, int]:
     """(header, scale, digits) of a domain's metric column."""
-    from plad.domains import get_domain
-
     metric = get_domain(domain).metric
     k = scale(domain)
     arrow = "higher is better" if metric.higher_is_better else "lower is better"
@@ -186,14 +174,9 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
 
 def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) -> None:
     """Validation metric (best so far) against fine-tuning wall-clock time: a panel per domain, a line per method."""
-    import io
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from plad.domains import get_domain
-    from plad.fsutil import atomic_write
 
     n = max(1, len(results))
     fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4.5), dpi=110, squeeze=False)

@@ -13,19 +13,19 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
 from plad.checkpoint import read_checkpoint, save_checkpoint
-from plad.fsutil import atomic_write_text
-
 from plad.domains.base import Domain
+from plad.fsutil import atomic_write_text
 from plad.model import PLADNet
 from plad.sampling import NEG, ancestral_sample
+
 
 @dataclass
 class RLConfig:

@@ -27,7 +27,7 @@ def test_execute_writes_png_and_npy(tmp_path):
     image = np.asarray(Image.open(tmp_path / "shape.png"))
     assert image.dtype == np.uint8 and image.shape == (64, 64)
     assert set(np.unique(image)) == {0, 255}
-    assert np.array_equal(image == 255, render(program))  # rows and columns as in the spec
+    assert np.array_equal(image == 255, render(program))  # rows and columns as in docs/domains.md
 
     res = run("execute", "csg2d", program, "-o", str(tmp_path / "shape.npy"))
     assert res.returncode == 0, res.stderr

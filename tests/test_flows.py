@@ -2,7 +2,6 @@
 import json
 
 import numpy as np
-
 import pytest
 
 
@@ -100,11 +99,11 @@ def test_retraining_schedule_is_defined_by_the_params(smoke_params):
 
 
 def test_sharded_inference_equals_one_batch(smoke_params):
-    from flows.finetune import FlowsConfig, _infer_shard
+    from flows.finetune import _infer_shard
     from plad.checkpoint import load_model
+    from plad.domains import get_domain
     from plad.search import infer_batched
     from plad.stages.prepare import load_prepared
-    from plad.domains import get_domain
 
     model, _ = load_model(smoke_params.parent / "sp.pt")
     shapes = load_prepared(smoke_params.parent / "prepared" / "csg2d.npz", "val")[:10]

@@ -7,7 +7,6 @@ import torch
 
 from plad.cli import main
 from plad.domains import get_domain
-from plad.domains.base import pad_programs
 from plad.domains.shapeassembly import token_cuboids
 from plad.domains.shapeassembly.voxels import voxelize_batch
 from plad.grammar import ProgramError

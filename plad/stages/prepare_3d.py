@@ -53,7 +53,7 @@ def prepare_3d(cfg: Prepare3DConfig) -> dict:
 
     from plad.data import DataError
     from plad.domains import get_domain
-    from plad.domains.shapeassembly.dataset import PREPARED_NAME, SPLITS, unpack, build_partnet_dataset
+    from plad.domains.shapeassembly.dataset import PREPARED_NAME, SPLITS, build_partnet_dataset, unpack
     from plad.stages.prepare import write_prepared
 
     source = find_source(cfg.data_dir)

@@ -14,9 +14,9 @@ import csv
 import json
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -26,8 +26,8 @@ from plad.config import ConfigError
 from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
-from plad.stages import stage_main
 from plad.model import ModelConfig, PLADNet, count_parameters
+from plad.stages import stage_main
 from plad.train import TrainConfig, fit
 
 

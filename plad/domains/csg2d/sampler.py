@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from plad.domains.csg2d.executor import Executor
 from plad.domains.base import pad_programs
+from plad.domains.csg2d.executor import Executor
 
 MAX_PRIMITIVES = 7
 

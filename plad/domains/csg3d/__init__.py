@@ -12,9 +12,9 @@ indexing), read through :func:`plad.domains.shapeassembly.dataset.load_split`.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch

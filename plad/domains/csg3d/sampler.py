@@ -1,4 +1,4 @@
-"""Synthetic 3D CSG programs for supervised pretraining (paper supplement; spec ``csg3d.md``).
+"""Synthetic 3D CSG programs for supervised pretraining (paper supplement; docs/domains.md).
 
 1. K primitives, K uniform in 2..12, each a cuboid or an ellipsoid (50/50).
    Per axis, the center is a rounded normal (mean 16, sd 16/3) resampled

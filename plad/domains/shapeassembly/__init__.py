@@ -7,7 +7,7 @@ language), :mod:`.sampler` (synthetic programs), :mod:`.dataset` (PartNet
 target shapes).
 
 Executed shapes are bool (B, 32, 32, 32) indexed [x, y, z] on the grid of
-the real data (voxel centers ``(i+.5)/32 - .5``, spec section 5, with the same
+the real data (voxel centers ``(i+.5)/32 - .5``, docs/shapeassembly.md, with the same
 0.55-voxel minimum half-extent). A token program's bbox is ``1 x h/32 x 1``
 centered at the origin, i.e. already in that centered unit cube, so it is not
 renormalized. A program whose execution fails numerically (a cuboid frame
@@ -16,9 +16,9 @@ becomes singular) executes to the empty shape.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -111,7 +111,7 @@ class ShapeAssembly(Domain):
         """``plad execute shapeassembly``: full-language text or token text -> file.
 
         Output by suffix: ``.npy`` the 32^3 bool grid [x, y, z] (full-language
-        shapes normalized by their tight bounds, spec section 5), ``.ply``/``.obj``
+        shapes normalized by their tight bounds, docs/shapeassembly.md), ``.ply``/``.obj``
         a mesh of the cuboids, ``.png`` three orthographic views. Returns a
         one-line summary.
         """

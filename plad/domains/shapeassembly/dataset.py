@@ -1,8 +1,8 @@
 """The real ShapeAssembly/3D target shapes: PartNet-derived programs, executed and voxelized.
 
 Source: ``partnet_programs.tar.gz`` (``programs/{chair,table,storage}/<id>.txt``
-and ``splits/<category>/{train,val}.txt``; see ``../shared/datasets/README.md``).
-Split rule of that README: train = the official train ids of all three
+and ``splits/<category>/{train,val}.txt``; see docs/conventions.md, "The data directory and the real datasets").
+Split rule: train = the official train ids of all three
 categories; the official val ids, sorted by (category, numeric id),
 alternate val (even positions) / test (odd positions).
 
@@ -17,11 +17,11 @@ category, then numeric id:
 * ``ids``: str (N,) program ids; ``categories``: str (N,) chair/table/storage;
   ``split``: str (N,) train/val/test;
 * ``norm_center`` float64 (N, 3), ``norm_scale`` float64 (N,): the tight-bounds
-  normalization applied before voxelizing (spec section 5);
+  normalization applied before voxelizing (docs/shapeassembly.md);
 * ``n_cuboids`` int64 (N,);
 * ``format_version`` int (1) and ``voxel_convention`` str.
 
-Voxels follow spec section 5 (see :mod:`plad.domains.shapeassembly.voxels`).
+Voxels follow docs/shapeassembly.md, "Voxelizing a real shape" (see :mod:`plad.domains.shapeassembly.voxels`).
 """
 from __future__ import annotations
 

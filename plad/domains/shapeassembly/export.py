@@ -25,7 +25,7 @@ def mesh_arrays(cuboids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def save_mesh(cuboids: np.ndarray, path: str | Path) -> None:
     """Write the cuboids as one triangle mesh (.ply or .obj) with open3d."""
-    from plad.meshio import write_mesh
+    from plad.mesh import write_mesh
 
     write_mesh(*mesh_arrays(cuboids), path)
 
