@@ -151,15 +151,16 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_data(args: argparse.Namespace) -> int:
-    from plad import data
+    from plad.data import resolve_data_dir
+    from plad.datasets import cad
 
     if args.action == "download":
-        path = data.download_cad(data.resolve_data_dir(args.data_dir))
+        path = cad.download_cad(resolve_data_dir(args.data_dir))
         print(f"downloaded and verified {path}")
         return 0
     for split in ("train", "val", "test"):
-        shapes = data.load_cad(args.data_dir, split)
-        print(f"csg2d {split}: {len(shapes)} shapes {shapes.shape[1:]}")
+        shapes = cad.load_cad(args.data_dir, split)
+        print(f"{cad.CAD.name} {split}: {len(shapes)} shapes {shapes.shape[1:]}")
     return 0
 
 

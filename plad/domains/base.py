@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from plad.data import TargetSource
 from plad.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
 
@@ -63,9 +64,18 @@ class Domain(abc.ABC):
         """``n`` valid, non-degenerate synthetic programs for supervised pretraining."""
 
     # -- real data -----------------------------------------------------------------
+    @property
     @abc.abstractmethod
+    def targets(self) -> TargetSource:
+        """Where the real target shapes come from (a dataset's source, shared by the domains on it).
+
+        The ``prepare`` stage prepares each source once and writes its splits
+        as ``<domain>.npz`` for every domain on it; the shapes must have :attr:`shape`.
+        """
+
     def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
-        """Real target shapes of a split (``train``/``val``/``test``): bool (N, *shape)."""
+        """Real target shapes of a split (``train``/``val``/``test``) from the data directory: bool (N, *shape)."""
+        return self.targets.load(split, data_dir)
 
     # -- outputs of inferred programs ------------------------------------------------------------
     def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:

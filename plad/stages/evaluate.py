@@ -52,7 +52,7 @@ def evaluate(cfg: EvaluateConfig) -> dict:
     from plad.device import resolve_device
     from plad.domains import get_domain
     from plad.search import infer_batched
-    from plad.stages.prepare import load_prepared
+    from plad.data import load_prepared
     from plad.viz import pair_grid, save_png
 
     if cfg.threads:

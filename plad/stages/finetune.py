@@ -82,7 +82,7 @@ def run_dir(cfg: FinetuneStageConfig) -> Path:
 
 def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
     """(training shapes, validation shapes) of the real data, limited as configured."""
-    from plad.stages.prepare import load_prepared
+    from plad.data import load_prepared
 
     path = Path(cfg.prepared_dir) / f"{cfg.domain}.npz"
     train, val = load_prepared(path, "train"), load_prepared(path, "val")

@@ -1,7 +1,6 @@
 """2D CSG domain (CSGNet's language on a 64 x 64 canvas)."""
 from __future__ import annotations
 
-import os
 from functools import cached_property
 from pathlib import Path
 from typing import Sequence
@@ -9,6 +8,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from plad.data import TargetSource
 from plad.domains.base import Domain
 from plad.domains.csg2d.executor import Executor
 from plad.domains.csg2d.sampler import sample_programs
@@ -45,10 +45,13 @@ class CSG2D(Domain):
     def sample(self, n: int, generator: np.random.Generator) -> list[list[int]]:
         return sample_programs(self.executor, n, generator)
 
-    def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
-        from plad.data import load_cad
+    @property
+    def targets(self) -> TargetSource:
+        """CSGNet's CAD drawings."""
+        from plad.datasets.cad import TARGETS
 
-        return load_cad(data_dir, split)
+        return TARGETS
+
 
     def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
         """``<stem>.svg``: the program's primitives as vector shapes, its operations as masks."""

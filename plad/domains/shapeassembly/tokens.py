@@ -30,7 +30,7 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Sequence
 
-from plad.domains.shapeassembly.lang import AXES, FACES, Stmt
+from plad.datasets.partnet.lang import AXES, FACES, Stmt
 from plad.grammar import ProgramError, Token, TokenTable
 
 RES = 32
