@@ -2,10 +2,10 @@
 
 A domain is everything that is specific to one shape language: its token
 table (grammar), the text form of programs, a batched executor, a synthetic
-program sampler, where its target (real) data comes from and its metric.
-Model, search, training methods, stages and the command line stay generic
-and only talk to this; a plugin (``plad/domains/<name>/``) imports no other
-plugin.
+program sampler, where its target (real) data comes from, its metric, its RL
+reward and how results are shown next to the paper's. Model, search,
+training methods, stages, the command line and the report stay generic and
+only talk to this; a plugin (``plad/domains/<name>/``) imports no other plugin.
 
 Required members are abstract. Optional members have a documented default
 that means "the domain does not offer this"; callers ask the domain through
@@ -16,7 +16,8 @@ from __future__ import annotations
 import abc
 import os
 from pathlib import Path
-from typing import Sequence
+from types import MappingProxyType
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -24,6 +25,8 @@ import torch
 from plad.data import TargetSource
 from plad.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
+
+_NONE: Mapping[str, float] = MappingProxyType({})
 
 
 class Domain(abc.ABC):
@@ -35,6 +38,25 @@ class Domain(abc.ABC):
     shape: tuple[int, ...]
     #: the domain's reconstruction metric (declares whether higher is better)
     metric: Metric
+
+    # -- how results are shown (optional) ---------------------------------------------------
+    #: name in tables and figures, e.g. ``"2D CSG"``; default: the registry name
+    title: str = ""
+    #: factor the metric is shown with in tables and figures (e.g. 100 for IoU in percent)
+    display_scale: float = 1.0
+    #: decimals of the shown (scaled) metric
+    display_digits: int = 3
+    #: the paper's Table 1 (test set, beam 10) for this domain: method key -> value in display units;
+    #: default: none
+    paper_table: Mapping[str, float] = _NONE
+    #: the paper supplement's numbers with P_BEST reset every round: method key -> value in display units;
+    #: default: none
+    paper_per_round: Mapping[str, float] = _NONE
+
+    @property
+    def display_name(self) -> str:
+        """:attr:`title`, else the registry name."""
+        return self.title or self.name
 
     @property
     @abc.abstractmethod
@@ -82,6 +104,11 @@ class Domain(abc.ABC):
     def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
         """Real target shapes of a split (``train``/``val``/``test``) from the data directory: bool (N, *shape)."""
         return self.targets.load(split, data_dir)
+
+    # -- reinforcement learning --------------------------------------------------------------------
+    @abc.abstractmethod
+    def reward(self, values: torch.Tensor) -> torch.Tensor:
+        """The RL reward in [0, 1] of metric values (N,) of sampled programs against their targets."""
 
     # -- command line (optional) -------------------------------------------------------------
     def execute_text(self, text: str, output: str | os.PathLike | None) -> str:

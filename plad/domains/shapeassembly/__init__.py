@@ -52,6 +52,11 @@ def token_cuboids(ids: Sequence[int]) -> np.ndarray:
 class ShapeAssembly(Domain):
     name = "shapeassembly"
     shape = (RES, RES, RES)
+    title = "ShapeAssembly"
+    # IoU shown in percent, as in the paper
+    display_scale, display_digits = 100.0, 1
+    #: Table 1 of the paper: test IoU x 100, beam 10
+    paper_table = {"sp": 37.6, "rl": 50.8, "ws": 57.2, "st": 61.3, "lest": 56.5, "lest_st": 66.0, "lest_st_ws": 66.4}
 
     @property
     def metric(self) -> Metric:  # type: ignore[override]
@@ -110,6 +115,9 @@ class ShapeAssembly(Domain):
 
         return TARGETS
 
+    def reward(self, values: torch.Tensor) -> torch.Tensor:
+        """The IoU itself (already in [0, 1])."""
+        return values.clamp(0, 1)
 
     # ---- command line -------------------------------------------------------------------
     def execute_text(self, text: str, output: str | os.PathLike | None) -> str:
