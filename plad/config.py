@@ -77,12 +77,6 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {', '.join(unknown)} in {where!r}; "
                           f"allowed: {', '.join(sorted(fields))}")
-    # keys without a default (e.g. the domain of a stage) must be given
-    missing = [f.name for f in dataclasses.fields(cls)  # type: ignore[arg-type]
-               if f.name not in raw and f.default is dataclasses.MISSING
-               and f.default_factory is dataclasses.MISSING]
-    if missing:
-        raise ConfigError(f"{source}: missing key(s) {', '.join(missing)} in {where!r}")
     values = {}
     for key, value in raw.items():
         hint = hints[key]
@@ -99,6 +93,13 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
             raise ConfigError(f"{source}: {where}.{key} = {value!r} should be of type "
                               f"{getattr(hint, '__name__', hint)}")
         values[key] = value
+    # keys without a default (e.g. a stage's domain) must be given; checked after the given keys,
+    # since a typo in those is the likelier mistake
+    missing = [f.name for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+               if f.name not in raw and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{source}: missing key(s) {', '.join(missing)} in {where!r}")
     return cls(**values)
 
 

@@ -2,14 +2,14 @@
 
 Usage in a stage::
 
-    with StageRun("pretrain", "csg2d", params, run_dir) as run:
+    with StageRun("pretrain", domain, params, run_dir) as run:
         for step, loss in ...:
             run.log_metrics({"loss": loss}, step=step)
         for r in range(rounds):
             with run.nested(f"round_{r}", round=r):
                 run.log_metrics({"val_iou": v}, step=r)     # goes to the child run
         run.log_artifact(metrics_json)
-        run.log_model(checkpoint, registered_name="plad-csg2d")
+        run.log_model(checkpoint, registered_name=f"plad-{domain}")
 
 Runs of one ``dvc repro`` share the tag ``plad.pipeline`` (see
 :func:`pipeline_tags`) so that they can be compared with

@@ -58,6 +58,7 @@ evaluate:
     domain: csg2d
     checkpoint: {ckpt}
     prepared_dir: {prepared}
+    out_dir: unused
     limit: 6
     beam: 2
 report:

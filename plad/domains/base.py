@@ -32,7 +32,7 @@ _NONE: Mapping[str, float] = MappingProxyType({})
 class Domain(abc.ABC):
     """Base class of domain plugins. Subclasses set the class attributes and implement the methods."""
 
-    #: registry name, e.g. ``"csg2d"``
+    #: registry name (the key of :func:`plad.domains.get_domain`), lower case
     name: str
     #: shape of one executed program / target, e.g. ``(64, 64)`` or ``(32, 32, 32)``
     shape: tuple[int, ...]

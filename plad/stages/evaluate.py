@@ -26,10 +26,10 @@ from plad.stages import stage_main
 
 @dataclass
 class EvaluateConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     #: the method whose model is evaluated (a row of the results table)
     method: str = "sp"
-    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    checkpoint: str = field(kw_only=True)
     prepared_dir: str = "data/prepared"
     splits: list[str] = field(default_factory=lambda: ["test"])
     beam: int = 10
@@ -39,7 +39,7 @@ class EvaluateConfig:
     grid_shapes: int = 16
     device: str = "auto"
     threads: int | None = None
-    out_dir: str = "results/eval/sp/csg2d"
+    out_dir: str = field(kw_only=True)
 
 
 def grid_indices(n: int, k: int) -> np.ndarray:

@@ -35,10 +35,10 @@ class MethodConfig:
 
 @dataclass
 class FinetuneStageConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     #: which entry of ``methods`` this run trains (set per DVC stage)
     key: str | None = None
-    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    checkpoint: str = field(kw_only=True)
     prepared_dir: str = "data/prepared"
     out_dir: str = "runs/finetune"
     #: where the run summary is copied for DVC metrics: <summary_dir>/<domain>/<key>.json
