@@ -1,7 +1,7 @@
 """Inference on the user's own shapes: a model, shapes in, programs and files out (``plad infer``).
 
-The model is a checkpoint file or an MLflow model URI (``models:/plad-csg2d@champion``,
-``models:/plad-csg2d/3``, ``runs:/<id>/model``); without one, the registered
+The model is a checkpoint file or an MLflow model URI (``models:/plad-<domain>@champion``,
+``models:/plad-<domain>/3``, ``runs:/<id>/model``); without one, the registered
 champion of the domain. For every input shape the output folder gets:
 
 * ``<stem>.txt``: the program text (the domain's text form);

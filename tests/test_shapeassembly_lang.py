@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from plad.domains.shapeassembly.execute import BlockState, Cuboid, _nearest_pair, nearest_pair_brute, run_text
-from plad.domains.shapeassembly.lang import SAParseError, parse_program
-from plad.domains.shapeassembly.voxels import normalization, voxelize
+from plad.datasets.partnet.execute import BlockState, Cuboid, _nearest_pair, nearest_pair_brute, run_text
+from plad.datasets.partnet.lang import SAParseError, parse_program
+from plad.datasets.partnet.voxels import normalization, voxelize
 from plad.grammar import ProgramError
 from tests.conftest import require_shared
 

@@ -21,22 +21,22 @@ import numpy as np
 import torch
 
 from plad.checkpoint import load_model, read_checkpoint
+from plad.data import load_prepared
 from plad.device import resolve_device
 from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
 from plad.pictures import pair_grid, save_png
 from plad.search import infer_batched
 from plad.stages import stage_main
-from plad.stages.prepare import load_prepared
 from plad.tracking import StageRun
 
 
 @dataclass
 class EvaluateConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     #: the method whose model is evaluated (a row of the results table)
     method: str = "sp"
-    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    checkpoint: str = field(kw_only=True)
     prepared_dir: str = "data/prepared"
     splits: list[str] = field(default_factory=lambda: ["test"])
     beam: int = 10
@@ -46,7 +46,7 @@ class EvaluateConfig:
     grid_shapes: int = 16
     device: str = "auto"
     threads: int | None = None
-    out_dir: str = "results/eval/sp/csg2d"
+    out_dir: str = field(kw_only=True)
 
 
 def grid_indices(n: int, k: int) -> np.ndarray:

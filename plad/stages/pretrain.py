@@ -48,7 +48,7 @@ class ModelSection:
 
 @dataclass
 class PretrainConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     synthetic_dir: str = "data/synthetic"
     out_dir: str = "runs/pretrain"
     #: "auto" (CUDA when present), "cpu" or "cuda"

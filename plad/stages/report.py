@@ -26,7 +26,7 @@ from plad.tracking import StageRun, set_champion, set_version_tags
 @dataclass
 class ReportConfig:
     #: the table's columns
-    domains: list[str] = field(default_factory=lambda: ["csg2d"])
+    domains: list[str] = field(kw_only=True)
     #: rows of the table, in order (keys of finetune.methods, plus "sp")
     methods: list[str] = field(default_factory=lambda: ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws"])
     #: all-time method key -> its per-round variant, for the P_BEST comparison

@@ -153,14 +153,14 @@ class StageRun:
 
     Usage in a stage::
 
-        with StageRun("pretrain", "csg2d", params, run_dir) as run:
+        with StageRun("pretrain", domain, params, run_dir) as run:
             for step, loss in ...:
                 run.log_metrics({"loss": loss}, step=step)
             for r in range(rounds):
                 with run.nested(f"round_{r}", round=r):
                     run.log_metrics({"val_iou": v}, step=r)     # goes to the child run
             run.log_artifact(metrics_json)
-            run.log_model(checkpoint, registered_name="plad-csg2d")
+            run.log_model(checkpoint, registered_name=f"plad-{domain}")
 
     The run id is kept in ``run_dir/mlflow_run.json``. Entering again with the
     same ``run_dir`` resumes that run if it is not FINISHED (a killed training

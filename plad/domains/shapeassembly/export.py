@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plad.domains.shapeassembly.voxels import corners
+from plad.datasets.partnet.voxels import corners
 from plad.pictures import VIEWS as _VIEWS  # the view axes of every 3D picture
 
 # triangles of a cuboid over the corner order of voxels.corners (index = 4 sx + 2 sy + sz,

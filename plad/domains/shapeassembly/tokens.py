@@ -32,7 +32,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import lru_cache
 
-from plad.domains.shapeassembly.lang import AXES, FACES, Stmt
+from plad.datasets.partnet.lang import AXES, FACES, Stmt
 from plad.grammar import ProgramError, Token, TokenTable
 
 RES = 32

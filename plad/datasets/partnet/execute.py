@@ -26,7 +26,7 @@ from collections import deque
 
 import numpy as np
 
-from plad.domains.shapeassembly.lang import FACES, Program, SAParseError, Stmt
+from plad.datasets.partnet.lang import FACES, Program, SAParseError, Stmt
 
 F32 = np.float32
 _EYE = np.eye(3, dtype=F32)
@@ -443,6 +443,6 @@ def execute_program(program: Program, copy_names=None, nearest=None) -> np.ndarr
 
 def run_text(text: str, nearest=None) -> np.ndarray:
     """Parse and execute full-language text -> (n, 15) float32 cuboids."""
-    from plad.domains.shapeassembly.lang import parse_program
+    from plad.datasets.partnet.lang import parse_program
 
     return execute_program(parse_program(text), nearest=nearest)
