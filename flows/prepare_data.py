@@ -4,7 +4,8 @@
 
 Use it to re-run data preparation when new shapes arrive, on a schedule or
 by hand; it calls :func:`plad.stages.prepare.prepare`, the same function as
-the DVC stage.
+the DVC stage, once per target source (domains on the same source share one
+task, so a source is built once).
 """
 from __future__ import annotations
 
@@ -13,20 +14,23 @@ import argparse
 from prefect import flow, task
 
 from plad.config import load_params, section
-from plad.stages.prepare import PrepareConfig, prepare
+from plad.stages.prepare import PrepareConfig, prepare, prepare_sources
 
 
 @task(retries=1, retry_delay_seconds=5)
-def prepare_domain(cfg: PrepareConfig, domain: str) -> dict:
-    single = PrepareConfig(data_dir=cfg.data_dir, domains=[domain], out_dir=cfg.out_dir)
-    return prepare(single)[domain]
+def prepare_source(cfg: PrepareConfig) -> dict[str, dict]:
+    return prepare(cfg)
 
 
 @flow(name="plad-prepare-data")
 def prepare_data(params_path: str = "params.yaml") -> dict[str, dict]:
     cfg = section(load_params(params_path), "prepare", PrepareConfig, source=params_path)
-    futures = {d: prepare_domain.submit(cfg, d) for d in cfg.domains}
-    return {d: f.result() for d, f in futures.items()}
+    futures = [prepare_source.submit(part) for part in prepare_sources(cfg)]
+    out: dict[str, dict] = {"domains": {}, "sources": {}}
+    for f in futures:
+        for key, value in f.result().items():
+            out[key].update(value)
+    return out
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 
+from plad.domains import get_domain
 from plad.fsutil import atomic_write
 from plad.model import ModelConfig, PLADNet
 
@@ -55,8 +56,6 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu",
                expect_domain: str | None = None) -> tuple[PLADNet, str]:
     """(model in eval mode on ``device``, domain name) from a checkpoint file."""
-    from plad.domains import get_domain
-
     payload = read_checkpoint(path)
     domain = payload["domain"]
     if expect_domain is not None and domain != expect_domain:

@@ -1,14 +1,15 @@
 """The ``plad`` command line.
 
-    plad execute csg2d "c(32,24,16)s(40,40,12)+$" -o shape.png
-    plad execute shapeassembly chair.txt -o chair.ply
-    plad execute csg3d "diff cuboid 16 16 16 20 20 20 ellipsoid 16 16 16 12 12 30" -o shape.ply
-    plad export csg3d "union cuboid 8 8 8 6 6 6 ellipsoid 12 10 9 8 6 4" --format scad -o shape.scad
-    plad score csg2d --pred pred.npy --target target.npy
+    plad execute DOMAIN PROGRAM [-o shape.png | shape.npy | shape.ply ...]
+    plad export DOMAIN PROGRAM --format FORMAT [-o FILE]
+    plad score DOMAIN --pred pred.npy --target target.npy
     plad data check | download
-    plad infer csg2d drawing.png shapes/ --beam 10 --out inferred/
+    plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/
     plad models
 
+DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
+program text or a ``.txt`` file holding it. What a domain offers (its output
+types, its export formats) it declares itself (:class:`plad.domains.base.Domain`).
 Errors in the user's input are one line on stderr and a non-zero status
 (2 for a bad program or file, 1 for missing data), never a traceback.
 """
@@ -31,19 +32,6 @@ def _fail(message: str, status: int) -> int:
 
 
 # ---- shape files -------------------------------------------------------------------
-def save_shape(canvas: np.ndarray, path: Path) -> None:
-    """Write one executed 2D shape: PNG (8-bit grayscale, 255 inside) or .npy (bool)."""
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        np.save(path, canvas.astype(bool))
-    elif suffix == ".png":
-        from PIL import Image
-
-        Image.fromarray(canvas.astype(np.uint8) * 255, mode="L").save(path)
-    else:
-        raise UsageError(f"{path}: unsupported output type {suffix or '(none)'!r}; use .png or .npy")
-
-
 def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
     """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
     if not path.exists():
@@ -75,33 +63,26 @@ def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
 
 
 # ---- commands --------------------------------------------------------------------------
-def cmd_execute(args: argparse.Namespace) -> int:
-    import torch
+def _program_text(program: str) -> str:
+    """The program argument: text, or the contents of the ``.txt`` file it names."""
+    if Path(program).suffix == ".txt" and Path(program).is_file():
+        return Path(program).read_text()
+    return program
 
+
+def cmd_execute(args: argparse.Namespace) -> int:
     from plad.domains import get_domain
     from plad.grammar import ProgramError
 
     domain = get_domain(args.domain)
-    text = args.program
-    if Path(text).suffix == ".txt" and Path(text).is_file():
-        text = Path(text).read_text()
-    execute_text = getattr(domain, "execute_text", None)
-    if execute_text is not None:
-        # 3D domains write their own outputs (voxels, meshes, views) and summarize
-        try:
-            print(execute_text(text, args.output), file=sys.stderr)
-        except ValueError as err:
-            if isinstance(err, ProgramError):
-                raise
-            raise UsageError(str(err)) from None
-        return 0
-    ids = domain.parse(text)
-    canvas = domain.execute(torch.tensor([ids]))[0].numpy()
-    if args.output:
-        save_shape(canvas, Path(args.output))
-    else:
-        print("\n".join("".join("#" if v else "." for v in row) for row in canvas))
-    print(domain.format(ids), file=sys.stderr)
+    try:
+        shown = domain.execute_text(_program_text(args.program), args.output)
+    except ValueError as err:
+        if isinstance(err, ProgramError):
+            raise
+        raise UsageError(str(err)) from None
+    # the shape itself goes to stdout when no file was asked for; otherwise stdout stays empty
+    print(shown, file=sys.stdout if args.output is None else sys.stderr)
     return 0
 
 
@@ -110,17 +91,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     from plad.grammar import ProgramError
 
     domain = get_domain(args.domain)
-    export_text = getattr(domain, "export_text", None)
-    formats = getattr(domain, "export_formats", ())
-    if export_text is None or not formats:
+    formats = domain.export_formats
+    if not formats:
         raise UsageError(f"the {args.domain} domain has no export formats")
     if args.format not in formats:
         raise UsageError(f"unknown export format {args.format!r} for {args.domain}; known: {', '.join(formats)}")
-    text = args.program
-    if Path(text).suffix == ".txt" and Path(text).is_file():
-        text = Path(text).read_text()
     try:
-        out = export_text(text, args.format)
+        out = domain.export_text(_program_text(args.program), args.format)
     except ValueError as err:
         if isinstance(err, ProgramError):
             raise
@@ -151,15 +128,16 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_data(args: argparse.Namespace) -> int:
-    from plad import data
+    from plad.data import resolve_data_dir
+    from plad.datasets import cad
 
     if args.action == "download":
-        path = data.download_cad(data.resolve_data_dir(args.data_dir))
+        path = cad.download_cad(resolve_data_dir(args.data_dir))
         print(f"downloaded and verified {path}")
         return 0
     for split in ("train", "val", "test"):
-        shapes = data.load_cad(args.data_dir, split)
-        print(f"csg2d {split}: {len(shapes)} shapes {shapes.shape[1:]}")
+        shapes = cad.load_cad(args.data_dir, split)
+        print(f"{cad.CAD.name} {split}: {len(shapes)} shapes {shapes.shape[1:]}")
     return 0
 
 
@@ -219,14 +197,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("execute", help="execute a program and write the shape")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
-    p.add_argument("-o", "--output", help="output file: .png (255 inside, 0 outside) or .npy (bool); "
-                   "shapeassembly, csg3d: .npy (32^3 bool [x, y, z]), .ply/.obj (mesh) or .png (three views)")
+    p.add_argument("-o", "--output", help="output file, its type by suffix: .npy (the bool grid) for every "
+                   "domain; 2D: .png (255 inside, 0 outside); 3D: .ply/.obj (mesh) or .png (three views). "
+                   "Without it a 2D shape is printed as text, a 3D one summarized")
     p.set_defaults(func=cmd_execute)
 
-    p = sub.add_parser("export", help="write a program in another tool's format (csg3d: OpenSCAD .scad)")
+    p = sub.add_parser("export", help="write a program in another tool's format (e.g. OpenSCAD .scad), "
+                                      "for the domains that offer one")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
-    p.add_argument("--format", required=True, help="output format, e.g. scad for csg3d")
+    p.add_argument("--format", required=True, help="output format, e.g. scad")
     p.add_argument("-o", "--output", help="output file (default: standard output)")
     p.set_defaults(func=cmd_export)
 

@@ -23,8 +23,8 @@ class ConfigError(ValueError):
 
 
 #: Top-level keys a params file may have: ``profile`` and one section per stage.
-SECTIONS = {"profile", "domains", "methods", "prepare", "prepare_3d", "synthesize", "pretrain", "evaluate",
-            "finetune", "report", "flows"}
+SECTIONS = {"profile", "domains", "methods", "prepare", "synthesize", "pretrain", "evaluate", "finetune", "report",
+            "flows"}
 
 
 def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
@@ -93,11 +93,18 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
             raise ConfigError(f"{source}: {where}.{key} = {value!r} should be of type "
                               f"{getattr(hint, '__name__', hint)}")
         values[key] = value
+    # keys without a default (e.g. a stage's domain) must be given; checked after the given keys,
+    # since a typo in those is the likelier mistake
+    missing = [f.name for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+               if f.name not in raw and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{source}: missing key(s) {', '.join(missing)} in {where!r}")
     return cls(**values)
 
 
 def lookup(params: dict[str, Any], name: str, source: str = "params.yaml") -> Any:
-    """``params["pretrain"]["csg2d"]`` for ``name = "pretrain.csg2d"``; a missing part is an error."""
+    """``params["pretrain"]["<domain>"]`` for ``name = "pretrain.<domain>"``; a missing part is an error."""
     node: Any = params
     for i, part in enumerate(name.split(".")):
         if not isinstance(node, dict) or part not in node:
@@ -108,7 +115,7 @@ def lookup(params: dict[str, Any], name: str, source: str = "params.yaml") -> An
 
 
 def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
-    """Build ``cls`` from the section ``name`` (dotted for a domain's subsection, e.g. ``pretrain.csg2d``)."""
+    """Build ``cls`` from the section ``name`` (dotted for a domain's subsection, e.g. ``pretrain.<domain>``)."""
     return build(cls, lookup(params, name, source), name, source)
 
 

@@ -1,4 +1,10 @@
-"""Real target-shape datasets: where they live, loading, verification, download.
+"""Real target shapes, whatever the dataset: where they live, verification, download, prepared files.
+
+Each dataset is a module of :mod:`plad.datasets`; this module holds what they
+share. A domain names its :class:`TargetSource`, the ``prepare`` stage writes
+every source's splits once per domain as a prepared file
+(:func:`write_prepared`), and training and evaluation read them back with
+:func:`load_prepared`.
 
 Where the data directory is (:func:`resolve_data_dir`), in order:
 
@@ -17,10 +23,12 @@ print it without a traceback.
 """
 from __future__ import annotations
 
+import abc
 import gzip
 import hashlib
 import http.client
 import io
+import json
 import logging
 import os
 import tempfile
@@ -28,11 +36,13 @@ import threading
 import urllib.error
 import urllib.request
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
+
+from plad.fsutil import atomic_write, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -104,22 +114,6 @@ class DatasetSpec:
         raise ValueError(f"unknown {self.name} split {name!r}; allowed: {allowed}")
 
 
-#: CSGNet's 2D "CAD" dataset (Sharma et al. 2018), the PLAD paper's 10K/3K/3K split.
-CAD = DatasetSpec(
-    name="CAD",
-    candidates=("csgnet_cad/cad.h5", "csgnet_cad/cad.h5.gz", "cad.h5", "cad.h5.gz"),
-    sha256="c1bc69bdc0f7a106ec1ac841932dcdac258497208758e92e1a94aaf39e61895d",
-    # dl=1 makes Dropbox serve the file itself instead of a preview page.
-    url="https://www.dropbox.com/s/d6vm7diqfp65kyi/cad.h5?dl=1",
-    download_to="csgnet_cad/cad.h5",
-    splits=(
-        SplitSpec("train", "train_images", (10000, 64, 64)),
-        SplitSpec("val", "val_images", (3000, 64, 64)),
-        SplitSpec("test", "test_images", (3000, 64, 64)),
-    ),
-)
-
-
 # --------------------------------------------------------------------------- location
 def resolve_data_dir(explicit: str | os.PathLike | None = None) -> Path:
     """The data directory: ``explicit``, else ``$PLAD_DATA_DIR``, else ``./data/datasets``.
@@ -173,7 +167,14 @@ def clear_cache() -> None:
 
 def load_dataset(spec: DatasetSpec, data_dir: str | os.PathLike | None = None,
                  split: str = "test", *, download: bool = False) -> np.ndarray:
-    """One split of ``spec`` as a fresh array (see :func:`load_cad`)."""
+    """One split of ``spec`` as a fresh array.
+
+    Reads the first of ``spec.candidates`` found in the data directory
+    (:func:`resolve_data_dir`), verifies its sha256 and caches all splits for
+    the process, so loading the three splits reads the file once. With
+    ``download=True`` a missing file is downloaded first; a present but
+    damaged file is reported, not replaced.
+    """
     split_spec = spec.split(split)  # ValueError before touching the disk
     root = resolve_data_dir(data_dir)
     path = find_dataset_file(spec, root)
@@ -186,19 +187,6 @@ def load_dataset(spec: DatasetSpec, data_dir: str | os.PathLike | None = None,
     # original must stay the verified data; copying 40 MB is ~10 ms, far
     # cheaper than re-reading.
     return arrays[split_spec.name].copy()
-
-
-def load_cad(data_dir: str | os.PathLike | None = None, split: str = "test", *,
-             download: bool = False) -> np.ndarray:
-    """CSGNet CAD shapes of ``split`` (``train``/``val``/``test``): bool (N, 64, 64), True = inside.
-
-    Reads ``cad.h5`` or ``cad.h5.gz`` (see :data:`CAD` for the names tried)
-    from the data directory (:func:`resolve_data_dir`), verifies its sha256
-    and caches all splits for the process, so loading the three splits reads
-    the file once. With ``download=True`` a missing file is downloaded first;
-    a present but damaged file is reported, not replaced.
-    """
-    return load_dataset(CAD, data_dir, split, download=download)
 
 
 def _cached_arrays(spec: DatasetSpec, path: Path) -> dict[str, np.ndarray]:
@@ -226,7 +214,7 @@ def _read_verified(spec: DatasetSpec, path: Path) -> dict[str, np.ndarray]:
         raise DataError(path, f"unsupported dataset format {spec.format!r}")
     log.info("loading %s dataset from %s", spec.name, path)
     if path.name.endswith(".gz"):
-        # The whole file is small enough (~65 MB for CAD) to decompress into
+        # The whole file is small enough (~65 MB for CSGNet's CAD) to decompress into
         # memory; that avoids writing a decompressed copy into what may be a
         # read-only shared folder.
         data = _gunzip_verified(spec, path)
@@ -381,27 +369,88 @@ def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}"
 
 
-def download_cad(data_dir: str | os.PathLike | None = None, url: str | None = None,
-                 timeout: float = 60.0) -> Path:
-    """Download CSGNet's ``cad.h5`` to ``<data_dir>/csgnet_cad/cad.h5`` (verified); returns the path.
+# --------------------------------------------------------------------------- target sources
+SPLITS = ("train", "val", "test")
 
-    ``url`` defaults to the public Dropbox link (:data:`CAD`.url); ``timeout``
-    is per socket operation, in seconds.
+
+@dataclass
+class PreparedTargets:
+    """What a :class:`TargetSource` hands the ``prepare`` stage."""
+
+    #: split name -> bool (N, *shape), for every name of :data:`SPLITS`
+    splits: dict[str, np.ndarray]
+    #: recorded in the summary (``<domain>.json``) of every domain on this source
+    provenance: dict = field(default_factory=dict)
+    #: the stage's result for this source (counts, time, failures)
+    report: dict = field(default_factory=dict)
+
+
+class TargetSource(abc.ABC):
+    """Where the real target shapes of one or more domains come from.
+
+    A domain names its source (:attr:`plad.domains.base.Domain.targets`);
+    domains on the same data share one source object, which the ``prepare``
+    stage prepares once for all of them.
     """
-    return download_dataset(CAD, data_dir, url=url, timeout=timeout)
+
+    #: the source's name in params and results, e.g. ``"cad"``
+    name: str
+
+    @abc.abstractmethod
+    def load(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
+        """The shapes of ``split`` (one of :data:`SPLITS`) from the data directory: bool (N, *shape)."""
+
+    def prepare(self, data_dir: str | os.PathLike | None, out_dir: str | os.PathLike,
+                limit: int | None = None) -> PreparedTargets:
+        """Every split for the ``prepare`` stage; ``limit`` keeps the first N shapes of each.
+
+        Default: :meth:`load` of each split. A source that builds its shapes
+        (e.g. by executing programs) overrides this and may write its own
+        files (reports, logs) into ``out_dir``.
+        """
+        return PreparedTargets({s: self.load(s, data_dir)[:limit] for s in SPLITS})
+
+
+# --------------------------------------------------------------------------- prepared files
+def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarray], out_dir: str | os.PathLike,
+                   extra: dict | None = None) -> dict:
+    """Write ``<out_dir>/<name>.npz`` (bit-packed splits) and its ``.json`` summary; returns the summary."""
+    arrays = {s: np.packbits(x.reshape(len(x), -1), axis=1) for s, x in splits.items()}
+    arrays["shape"] = np.asarray(shape)
+    summary = {
+        "domain": name,
+        "shape": list(shape),
+        **{f"{s}_count": int(len(x)) for s, x in splits.items()},
+        **{f"{s}_occupancy": round(float(x.mean()), 6) if len(x) else 0.0 for s, x in splits.items()},
+        **(extra or {}),
+    }
+    out = Path(out_dir)
+    atomic_write(out / f"{name}.npz", lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
+    """Read one split back from a prepared ``.npz`` (:func:`write_prepared`): bool (N, *shape)."""
+    with np.load(path) as z:
+        shape = tuple(int(v) for v in z["shape"])
+        packed = z[split]
+    return np.unpackbits(packed, axis=1, count=int(np.prod(shape))).astype(bool).reshape(-1, *shape)
 
 
 __all__ = [
-    "CAD",
     "DATA_DIR_ENV",
+    "SPLITS",
     "DataError",
     "DatasetSpec",
+    "PreparedTargets",
     "SplitSpec",
+    "TargetSource",
     "clear_cache",
-    "download_cad",
     "download_dataset",
     "find_dataset_file",
-    "load_cad",
     "load_dataset",
+    "load_prepared",
     "resolve_data_dir",
+    "write_prepared",
 ]

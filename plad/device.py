@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import torch
 
+from plad.config import ConfigError
+
 
 def default_device() -> torch.device:
     """CUDA when a GPU is present, otherwise the CPU."""
@@ -11,8 +13,6 @@ def default_device() -> torch.device:
 
 def resolve_device(name: str) -> torch.device:
     """A params value: "auto" (CUDA when present), "cpu" or "cuda"."""
-    from plad.config import ConfigError
-
     if name == "auto":
         return default_device()
     if name == "cuda" and not torch.cuda.is_available():

@@ -27,8 +27,8 @@ by random masked rollouts for every domain.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import torch
 
@@ -87,7 +87,7 @@ class GrammarState:
         """(B,) bool: the program is complete (the stack emptied after at least one token)."""
         return (self.depth == 0) & (self.length > 0)
 
-    def select(self, index: torch.Tensor) -> "GrammarState":
+    def select(self, index: torch.Tensor) -> GrammarState:
         """Reorder/duplicate rows (beam search keeps the surviving hypotheses)."""
         return GrammarState(self.stack[index], self.depth[index], self.length[index], self.cost[index])
 

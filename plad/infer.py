@@ -1,7 +1,7 @@
 """Inference on the user's own shapes: a model, shapes in, programs and files out (``plad infer``).
 
-The model is a checkpoint file or an MLflow model URI (``models:/plad-csg2d@champion``,
-``models:/plad-csg2d/3``, ``runs:/<id>/model``); without one, the registered
+The model is a checkpoint file or an MLflow model URI (``models:/plad-<domain>@champion``,
+``models:/plad-<domain>/3``, ``runs:/<id>/model``); without one, the registered
 champion of the domain. For every input shape the output folder gets:
 
 * ``<stem>.txt``: the program text (the domain's text form);
@@ -20,18 +20,21 @@ from __future__ import annotations
 
 import csv
 import io
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from plad.checkpoint import CheckpointError, load_model
 from plad.domains.base import Domain
 from plad.fsutil import atomic_write_text
 from plad.inputs import Item
 from plad.model import PLADNet
+from plad.pictures import save_comparison
+from plad.search import infer_programs
+from plad.tracking import download_checkpoint, is_model_uri
 
 
 class ModelError(Exception):
@@ -51,7 +54,7 @@ def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple
             return load_model(path, device, expect_domain=domain)[0], str(path)
         except CheckpointError as err:
             raise ModelError(str(err)) from None
-    if ref.startswith(("models:/", "runs:/", "mlflow-artifacts:/")):
+    if is_model_uri(ref):
         local = _download_checkpoint(ref)
         try:
             return load_model(local, device, expect_domain=domain)[0], ref
@@ -62,25 +65,15 @@ def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple
 
 
 def _download_checkpoint(uri: str) -> Path:
-    """The checkpoint inside a logged PLAD model (its ``checkpoint`` artifact), downloaded locally."""
-    import mlflow
-    from mlflow.exceptions import MlflowException
-
-    from plad.tracking import tracking_uri
-
-    mlflow.set_tracking_uri(tracking_uri())
-    dest = Path(tempfile.mkdtemp(prefix="plad-model-"))
+    """The checkpoint inside a logged PLAD model, downloaded locally; :class:`ModelError` when it cannot be had."""
     try:
-        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dest)))
-    except MlflowException as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else err.__class__.__name__
+        return download_checkpoint(uri)
+    except LookupError as err:   # not in the store
         hint = " (train and register one with `dvc repro`, or pass --model a checkpoint file)" \
             if uri.startswith("models:/") else ""
-        raise ModelError(f"{uri}: not found in the MLflow store {tracking_uri()}: {first}{hint}") from None
-    found = sorted(local.rglob("*.pt")) if local.is_dir() else [local]
-    if not found:
-        raise ModelError(f"{uri}: a logged model without a PLAD checkpoint")
-    return found[0]
+        raise ModelError(f"{err}{hint}") from None
+    except ValueError as err:    # a logged model without a checkpoint
+        raise ModelError(str(err)) from None
 
 
 @dataclass
@@ -97,8 +90,6 @@ class Result:
 
 def _write_outputs(domain: Domain, item: Item, ids: list[int], recon: np.ndarray, value: float,
                    out: Path) -> tuple[str, ...]:
-    from plad.pictures import save_comparison
-
     stem = out / item.name
     program = domain.format(ids)
     files = [stem.with_suffix(".txt"), stem.with_name(f"{item.name}.png"),
@@ -120,10 +111,6 @@ def _wrap(text: str, width: int = 90) -> str:
 def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
                 batch_size: int = 16, progress: bool = True) -> list[Result]:
     """Best-of-beam programs for the good items, their output files, and ``results.csv``."""
-    from tqdm import tqdm
-
-    from plad.search import infer_programs
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = next(model.parameters()).device

@@ -33,11 +33,14 @@ An empty shape (or a full canvas) is an error.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
+from scipy import ndimage
+from skimage.filters import threshold_otsu
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tif", ".tiff", ".webp")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl")
@@ -66,8 +69,6 @@ def supported_suffixes(shape: tuple[int, ...]) -> tuple[str, ...]:
 # ---- 2D -----------------------------------------------------------------------------------------
 def binarize_image(path: Path) -> np.ndarray:
     """Foreground mask (H, W) of an image file by the module's rule."""
-    from PIL import Image, UnidentifiedImageError
-
     try:
         with Image.open(path) as image:
             image.load()
@@ -80,8 +81,6 @@ def binarize_image(path: Path) -> np.ndarray:
     gray = rgba[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
     if gray.max() - gray.min() < 1e-9:
         raise InputError("the image is a single color: there is no shape in it")
-    from skimage.filters import threshold_otsu
-
     dark = gray <= threshold_otsu(gray)
     border = np.concatenate([dark[0], dark[-1], dark[:, 0], dark[:, -1]])
     return dark if border.mean() <= 0.5 else ~dark
@@ -89,8 +88,6 @@ def binarize_image(path: Path) -> np.ndarray:
 
 def fit_canvas(mask: np.ndarray, canvas: tuple[int, int], longer: int = FIT_2D) -> np.ndarray:
     """Crop ``mask`` to its shape, scale the longer side to ``longer`` pixels, center on ``canvas``."""
-    from PIL import Image
-
     rows, cols = np.nonzero(mask)
     if len(rows) == 0:
         raise InputError("the shape is empty")
@@ -117,7 +114,6 @@ def _canvas(mask: np.ndarray, shape: tuple[int, ...], notes: list[str]) -> np.nd
 def voxelize_mesh(path: Path, shape: tuple[int, int, int]) -> tuple[np.ndarray, list[str]]:
     """(bool grid of ``shape`` indexed [x, y, z], notes) of a mesh file by the module's rule."""
     import open3d as o3d
-    from scipy import ndimage
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     mesh = o3d.io.read_triangle_mesh(str(path))

@@ -13,8 +13,8 @@ whole from one source, chosen at random with the normalized weights.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import numpy as np
 import torch

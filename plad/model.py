@@ -8,9 +8,9 @@ input shape. The decoder is a prefix Transformer as in the paper's 3D model:
 the sequence is [visual tokens, BOS, z_1, ..., z_t]; visual tokens attend to
 each other fully, program tokens attend to all visual tokens and causally to
 earlier program tokens; learned positional embeddings; a 2-layer MLP head.
-(The paper's 2D model is CSGNet's GRU; the issue allows a Transformer for 2D
-if it does at least as well, and one network for every domain keeps the
-search and training code generic.)
+(The paper's 2D model is CSGNet's GRU; this project uses the Transformer in 2D
+too, provided it does at least as well, because one network for every domain
+keeps the search and training code generic.)
 
 Incremental decoding keeps per-layer key/value caches, so beam search costs
 one position per step instead of re-running the whole prefix.

@@ -90,7 +90,7 @@ class PBest:
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
     @classmethod
-    def load(cls, path: str | os.PathLike, metric: Metric) -> "PBest":
+    def load(cls, path: str | os.PathLike, metric: Metric) -> PBest:
         with np.load(Path(path)) as z:
             shape = tuple(int(v) for v in z["shape"])
             out = cls(len(z["values"]), shape, z["programs"].shape[1], metric, str(z["mode"]))

@@ -1,5 +1,10 @@
 """Pictures of shapes, for any domain: 2D canvases as images, 3D voxel grids as three depth views.
 
+Two kinds: matplotlib figures with titles (:func:`save_comparison`,
+:func:`save_views`: ``plad infer``, 3D exports) and plain pixel grids of
+target | reconstruction pairs (:func:`pair_grid`, :func:`save_png`: the
+evaluation stage's ``grid.png``).
+
 The view convention (shared with the ShapeAssembly cuboid views): grids are
 indexed [x, y, z] with y up; ``front`` looks along -z (x right, y up),
 ``side`` along +x (z right, y up), ``top`` along -y (x right, +z down).
@@ -7,10 +12,14 @@ Uses matplotlib's Agg backend (no display needed).
 """
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
+from PIL import Image
+
+from plad.fsutil import atomic_write
 
 #: (name, horizontal axis, vertical axis, depth axis, depth sign): views look along -sign * depth
 VIEWS = (("front", 0, 1, 2, 1), ("side", 2, 1, 0, -1), ("top", 0, 2, 1, 1))
@@ -85,3 +94,40 @@ def save_comparison(panels: Sequence[tuple[str, np.ndarray]], path: str | Path, 
     fig.tight_layout()
     fig.savefig(str(path), dpi=100)
     plt.close(fig)
+
+
+# -- pixel grids of (target | reconstruction) pairs ----------------------------------------------
+def _as_image(shape: np.ndarray) -> np.ndarray:
+    """A 2D canvas as is; a 3D voxel grid as three orthographic projections side by side."""
+    if shape.ndim == 2:
+        return shape
+    views = [shape.any(axis=a) for a in range(3)]
+    gap = np.zeros((shape.shape[1], 2), dtype=bool)
+    return np.concatenate([views[0], gap, views[1], gap, views[2]], axis=1)
+
+
+def pair_grid(targets: np.ndarray, recons: np.ndarray, columns: int = 4, scale: int = 2) -> np.ndarray:
+    """uint8 RGB image: rows of (target | reconstruction) cells, targets in black, reconstructions in blue."""
+    cells = []
+    for t, r in zip(targets, recons):
+        ti, ri = _as_image(t), _as_image(r)
+        h, w = ti.shape
+        cell = np.full((h + 4, 2 * w + 12, 3), 255, dtype=np.uint8)
+        cell[2:2 + h, 2:2 + w][ti] = (0, 0, 0)
+        cell[2:2 + h, w + 6:w + 6 + w][ri] = (30, 80, 200)
+        cell[:, w + 3:w + 5] = (200, 200, 200)  # separator
+        cells.append(cell)
+    if not cells:
+        return np.full((8, 8, 3), 255, dtype=np.uint8)
+    ch, cw, _ = cells[0].shape
+    rows = (len(cells) + columns - 1) // columns
+    grid = np.full((rows * (ch + 4), columns * (cw + 4), 3), 230, dtype=np.uint8)
+    for i, cell in enumerate(cells):
+        r, c = divmod(i, columns)
+        grid[r * (ch + 4):r * (ch + 4) + ch, c * (cw + 4):c * (cw + 4) + cw] = cell
+    return grid.repeat(scale, 0).repeat(scale, 1)
+
+
+def save_png(image: np.ndarray, path: str | os.PathLike) -> None:
+    """An image array (uint8, (H, W) or (H, W, 3)) as a PNG file, written atomically."""
+    atomic_write(path, lambda fh: Image.fromarray(image).save(fh, format="PNG"))

@@ -8,23 +8,17 @@ either. Rendering is a pure function of those records.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from plad.domains import get_domain
+from plad.fsutil import atomic_write
 from plad.loop import read_state, upgrade_summary
-
-#: Table 1 of the paper (test set, beam 10): 2D CSG Chamfer distance, 3D IoU x 100.
-PAPER_TABLE = {
-    "csg2d": {"sp": 1.580, "rl": 1.097, "ws": 1.118, "st": 0.841, "lest": 0.976, "lest_st": 0.829,
-              "lest_st_ws": 0.811},
-    "csg3d": {"sp": 41.0, "rl": 53.4, "ws": 67.4, "st": 67.3, "lest": 69.8, "lest_st": 70.8, "lest_st_ws": 74.3},
-    "shapeassembly": {"sp": 37.6, "rl": 50.8, "ws": 57.2, "st": 61.3, "lest": 56.5, "lest_st": 66.0,
-                      "lest_st_ws": 66.4},
-}
-#: Supplement: 2D CSG with P_BEST reset every round.
-PAPER_PER_ROUND = {"csg2d": {"st": 0.881, "lest": 1.011, "lest_st": 0.853, "lest_st_ws": 0.845}}
+from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
 LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
           "lest_st_ws": "LEST+ST+WS"}
@@ -45,13 +39,6 @@ class MethodResult:
     val_best: float | None = None                     # validation metric of the selected model
     rounds: int | None = None
     stopped: str | None = None
-
-
-def scale(domain: str) -> float:
-    """Table values: IoU is reported x 100, Chamfer distance as is."""
-    from plad.domains import get_domain
-
-    return 100.0 if get_domain(domain).metric.higher_is_better else 1.0
 
 
 # -- gathering ------------------------------------------------------------------------------------
@@ -75,60 +62,54 @@ def from_files(domain: str, keys: list[str], results_dir: str | Path, finetune_d
 
 def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> list[MethodResult]:
     """The same records from the MLflow store alone (latest finished run per stage and method)."""
-    import mlflow
-
-    from plad.domains import get_domain
-    from plad.tracking import DEFAULT_EXPERIMENT, tracking_uri
-
-    mlflow.set_tracking_uri(tracking_uri())
-    client = mlflow.MlflowClient()
-    exp = client.get_experiment_by_name(experiment or DEFAULT_EXPERIMENT)
-    if exp is None:
-        raise LookupError(f"no MLflow experiment {experiment or DEFAULT_EXPERIMENT!r} at {tracking_uri()}")
+    experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)   # LookupError naming the store
     metric = get_domain(domain).metric.name
 
-    def latest(stage: str, key: str):
-        runs = client.search_runs([exp.experiment_id],
-                                  f"tags.`plad.stage` = '{stage}' and tags.`plad.method` = '{key}' and "
-                                  f"tags.`plad.domain` = '{domain}' and attributes.status = 'FINISHED'",
-                                  order_by=["attributes.end_time DESC"], max_results=1)
-        return runs[0] if runs else None
+    def latest(stage: str, key: str) -> RunRecord | None:
+        return latest_finished_run(experiment_id, {"plad.stage": stage, "plad.method": key, "plad.domain": domain})
 
     out = []
     for key in keys:
         ev = latest("evaluate", key)
-        res = MethodResult(key, ev.data.metrics.get(f"test_{metric}") if ev else None)
+        res = MethodResult(key, ev.metrics.get(f"test_{metric}") if ev else None)
         ft = latest("finetune", key)
         if ft is not None:
-            hist = client.get_metric_history(ft.info.run_id, "val_at_seconds")
-            res.curve = sorted((float(m.step), float(m.value)) for m in hist)
-            m = ft.data.metrics
+            history = metric_history(ft.run_id, "val_at_seconds")
+            res.curve = sorted((float(step), float(value)) for step, value in history)
+            m = ft.metrics
             res.train_seconds = m.get("train_seconds")
             m = upgrade_summary({**m, "metric": metric})   # runs logged by older versions
             res.rounds = int(m["units"]) if "units" in m else None
-            res.stopped = ft.data.tags.get("plad.stopped")
+            res.stopped = ft.tags.get("plad.stopped")
             res.val_best = m.get("val")
         out.append(res)
     return out
 
 
 # -- rendering ------------------------------------------------------------------------------------
-DOMAIN_TITLES = {"csg2d": "2D CSG", "csg3d": "3D CSG", "shapeassembly": "ShapeAssembly"}
-
-
+# A domain declares how it is shown (display name, scale and digits of its metric) and the paper's
+# numbers for it (plad.domains.base.Domain); the report only lays them out.
 def _fmt(v: float | None, digits: int) -> str:
     return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
 def _column(domain: str) -> tuple[str, float, int]:
     """(header, scale, digits) of a domain's metric column."""
-    from plad.domains import get_domain
+    d = get_domain(domain)
+    k = d.display_scale
+    arrow = "higher is better" if d.metric.higher_is_better else "lower is better"
+    name = f"{d.metric.name} x{k:g}" if k != 1 else d.metric.name
+    return f"{d.display_name}: {name}, {arrow}", k, d.display_digits
 
-    metric = get_domain(domain).metric
-    k = scale(domain)
-    arrow = "higher is better" if metric.higher_is_better else "lower is better"
-    name = f"{metric.name} x100" if k != 1 else metric.name
-    return f"{DOMAIN_TITLES.get(domain, domain)}: {name}, {arrow}", k, (3 if k == 1 else 1)
+
+def _title(domain: str) -> str:
+    return get_domain(domain).display_name
+
+
+def _paper(domain: str, per_round: bool = False) -> Mapping[str, float]:
+    """The paper's numbers for ``domain`` (Table 1, or the supplement's per-round P_BEST), in display units."""
+    d = get_domain(domain)
+    return d.paper_per_round if per_round else d.paper_table
 
 
 def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], per_round: dict[str, str],
@@ -150,10 +131,10 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
             _, k, digits = _column(d)
             r = by[d].get(key)
             row += f" {_fmt(r.test * k if r and r.test is not None else None, digits)} |" \
-                   f" {_fmt(PAPER_TABLE.get(d, {}).get(key), digits)} |"
+                   f" {_fmt(_paper(d).get(key), digits)} |"
         lines.append(row)
     lines += ["", "## Fine-tuning runs", "",
-              "| method | " + " | ".join(f"{DOMAIN_TITLES.get(d, d)}: minutes, rounds (RL: epochs), stop"
+              "| method | " + " | ".join(f"{_title(d)}: minutes, rounds (RL: epochs), stop"
                                         for d in domains) + " |",
               "|---|" + "---|" * len(domains)]
     for key in [m for m in methods if m != "sp"] + [v for v in per_round.values() if v not in methods]:
@@ -169,9 +150,8 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
         lines += ["", "## P_BEST: all-time vs per-round (supplement)", ""]
         for d in domains:
             _, k, digits = _column(d)
-            ref = PAPER_PER_ROUND.get(d, {})
-            paper = PAPER_TABLE.get(d, {})
-            lines += [f"{DOMAIN_TITLES.get(d, d)}:", "",
+            ref, paper = _paper(d, per_round=True), _paper(d)
+            lines += [f"{_title(d)}:", "",
                       "| method | all-time (ours) | per-round (ours) | all-time (paper) | per-round (paper) |",
                       "|---|---|---|---|---|"]
             for a, b in per_round.items():
@@ -186,20 +166,15 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
 
 def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) -> None:
     """Validation metric (best so far) against fine-tuning wall-clock time: a panel per domain, a line per method."""
-    import io
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from plad.domains import get_domain
-    from plad.fsutil import atomic_write
 
     n = max(1, len(results))
     fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4.5), dpi=110, squeeze=False)
     for ax, (domain, rs) in zip(axes[0], results.items()):
         metric = get_domain(domain).metric
-        k = scale(domain)
+        k = get_domain(domain).display_scale
         start = None
         for r in rs:
             if len(r.curve) < 2:
@@ -214,8 +189,8 @@ def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) ->
         if start is not None:
             ax.axhline(start * k, color="grey", linestyle=":", label="SP (start)")
         ax.set_xlabel("fine-tuning wall-clock time (min)")
-        ax.set_ylabel(f"validation {metric.name}" + (" x100" if k != 1 else "") + " (best so far)")
-        ax.set_title(DOMAIN_TITLES.get(domain, domain))
+        ax.set_ylabel(f"validation {metric.name}" + (f" x{k:g}" if k != 1 else "") + " (best so far)")
+        ax.set_title(_title(domain))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()

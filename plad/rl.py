@@ -10,10 +10,10 @@ distance (the 2D Chamfer distance) becomes CSGNet's
 """
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -49,11 +49,8 @@ class RLConfig:
 
 
 def reward(domain: Domain, values: torch.Tensor) -> torch.Tensor:
-    """Metric values (N,) -> rewards in [0, 1]."""
-    if domain.metric.higher_is_better:
-        return values.clamp(0, 1)
-    diagonal = math.sqrt(sum(s * s for s in domain.shape))
-    return (1 - values / diagonal).clamp(0, 1) ** 20
+    """Metric values (N,) -> rewards in [0, 1], as the domain declares them (:meth:`Domain.reward`)."""
+    return domain.reward(values)
 
 
 def sample_programs(model: PLADNet, domain: Domain, shapes: torch.Tensor,

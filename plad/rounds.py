@@ -31,9 +31,10 @@ import io
 import json
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -48,8 +49,7 @@ from plad.model import PLADNet
 from plad.pbest import PBest
 from plad.search import infer_batched
 from plad.train import TrainConfig, fit
-from plad.ws import WSConfig, load_generator, new_generator, sample_dataset, save_generator, train_generator, \
-    ws_source
+from plad.ws import WSConfig, load_generator, new_generator, sample_dataset, save_generator, train_generator, ws_source
 
 log = logging.getLogger(__name__)
 

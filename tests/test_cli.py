@@ -27,12 +27,21 @@ def test_execute_writes_png_and_npy(tmp_path):
     image = np.asarray(Image.open(tmp_path / "shape.png"))
     assert image.dtype == np.uint8 and image.shape == (64, 64)
     assert set(np.unique(image)) == {0, 255}
-    assert np.array_equal(image == 255, render(program))  # rows and columns as in the spec
+    assert np.array_equal(image == 255, render(program))  # rows and columns as in docs/domains.md
 
     res = run("execute", "csg2d", program, "-o", str(tmp_path / "shape.npy"))
     assert res.returncode == 0, res.stderr
     array = np.load(tmp_path / "shape.npy")
     assert array.dtype == bool and np.array_equal(array, render(program))
+
+
+def test_execute_without_output_prints_the_shape_then_the_program():
+    program = "c(32,24,16)s(40,40,12)+$"
+    res = run("execute", "csg2d", program)
+    assert res.returncode == 0, res.stderr
+    *rows, text = res.stdout.splitlines()
+    assert text == get_domain("csg2d").format(get_domain("csg2d").parse(program))
+    assert np.array_equal(np.array([[c == "#" for c in row] for row in rows]), render(program))
 
 
 @pytest.mark.parametrize("program, token", [

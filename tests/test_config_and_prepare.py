@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from plad.config import ConfigError, load_params, section
-from plad.data import load_cad
+from plad.data import load_prepared
+from plad.datasets.cad import load_cad
 from plad.stages.evaluate import EvaluateConfig
-from plad.stages.prepare import PrepareConfig, load_prepared, main, prepare
+from plad.stages.prepare import PrepareConfig, main, prepare
 from plad.stages.pretrain import PretrainConfig
 from plad.stages.synthesize import SynthesizeConfig
 
@@ -16,8 +17,9 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def test_repository_params_load():
-    cfg = section(load_params(REPO / "params.yaml"), "prepare", PrepareConfig)
-    assert cfg.domains == ["csg2d"]
+    params = load_params(REPO / "params.yaml")
+    cfg = section(params, "prepare", PrepareConfig)
+    assert cfg.domains == params["domains"] and cfg.limit == {}
 
 
 def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
@@ -47,7 +49,6 @@ def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
 def test_profiles_are_complete_and_params_is_the_cpu_profile():
     from flows.finetune import FlowsConfig
     from plad.stages.finetune import FinetuneStageConfig
-    from plad.stages.prepare_3d import Prepare3DConfig
     from plad.stages.report import ReportConfig
 
     per_domain = [("synthesize", SynthesizeConfig), ("pretrain", PretrainConfig), ("evaluate", EvaluateConfig),
@@ -55,10 +56,11 @@ def test_profiles_are_complete_and_params_is_the_cpu_profile():
     for profile in ("smoke", "cpu", "paper"):
         params = load_params(REPO / "profiles" / f"{profile}.yaml")
         assert params["profile"] == profile
-        for name, cls in [("prepare", PrepareConfig), ("prepare_3d", Prepare3DConfig), ("report", ReportConfig),
+        for name, cls in [("prepare", PrepareConfig), ("report", ReportConfig),
                           ("flows", FlowsConfig)]:
             section(params, name, cls)
         assert section(params, "report", ReportConfig).domains == params["domains"]
+        assert section(params, "prepare", PrepareConfig).domains == params["domains"]
         for domain in params["domains"]:
             for name, cls in per_domain:
                 cfg = section(params, f"{name}.{domain}", cls)
@@ -70,8 +72,8 @@ def test_profiles_are_complete_and_params_is_the_cpu_profile():
 
 
 def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
-    cfg = PrepareConfig(data_dir=str(datasets_dir), out_dir=str(tmp_path / "out"))
-    summary = prepare(cfg)["csg2d"]
+    cfg = PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), out_dir=str(tmp_path / "out"))
+    summary = prepare(cfg)["domains"]["csg2d"]
     assert summary["train_count"] == 10000 and summary["test_count"] == 3000
     assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == summary
     test = load_prepared(tmp_path / "out" / "csg2d.npz", "test")
@@ -81,7 +83,7 @@ def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
 
 def test_prepare_main_reports_errors_in_one_line(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"prepare:\n  data_dir: {tmp_path}\n  out_dir: {tmp_path / 'out'}\n")
+    p.write_text(f"prepare:\n  domains: [csg2d]\n  data_dir: {tmp_path}\n  out_dir: {tmp_path / 'out'}\n")
     assert main(["--params", str(p)]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found" in err

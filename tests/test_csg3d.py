@@ -49,7 +49,8 @@ def test_mask_keeps_the_program_within_the_cap():
 
 # ---- text form -------------------------------------------------------------------------
 def test_text_round_trip_and_aliases():
-    text = "diff union cuboid 16 16 16 20 20 20 ellipsoid 8 9 10 3 4 5 inter cuboid 1 2 3 4 5 6 ellipsoid 31 31 31 31 31 31"
+    text = ("diff union cuboid 16 16 16 20 20 20 ellipsoid 8 9 10 3 4 5 "
+            "inter cuboid 1 2 3 4 5 6 ellipsoid 31 31 31 31 31 31")
     ids = DOMAIN.parse(text)
     assert DOMAIN.format(ids) == text
     assert DOMAIN.parse("  subtract\n  cuboid 16 16 16 20 20 20\n  ELLIPSOID 16 16 16 2 2 2  ") == \
@@ -73,7 +74,8 @@ def test_text_round_trip_and_aliases():
     ("cube 1 2 3 4 5 6", 0, "cube", "token 0 'cube' is not a csg3d token"),
     ("cuboid 16 16 16 8 8 8.5", 6, "8.5", "token 6 '8.5' is not a csg3d token"),
     ("cuboid(16,16,16,8,8,8)", 0, "cuboid(16,16,16,8,8,8)", "is not a csg3d token"),
-    ("cuboid 1 1 1 2 2 2 cuboid 1 1 1 2 2 2", 7, "cuboid", "token 7 'cuboid' comes after the program is already complete"),
+    ("cuboid 1 1 1 2 2 2 cuboid 1 1 1 2 2 2", 7, "cuboid",
+     "token 7 'cuboid' comes after the program is already complete"),
     ("union " * 13 + "cuboid 1 1 1 2 2 2 " * 14, 100, None, "program has 111 tokens; the length cap is 100"),
 ])
 def test_parse_errors_are_one_line_and_name_the_token(text, position, token, message):
@@ -93,7 +95,7 @@ def test_check_rejects_incomplete_and_overlong_id_sequences():
         DOMAIN.check(TABLE.encode("cuboid 1 1 1 2 2 2 7".split()))
 
 
-# ---- executor: exact voxels of the spec's inside tests ------------------------------------
+# ---- executor: exact voxels of the inside tests (docs/domains.md) --------------------------
 def box(x0, x1, y0, y1, z0, z1):
     """Inclusive voxel index ranges -> bool grid."""
     g = np.zeros((32, 32, 32), bool)

@@ -1,4 +1,4 @@
-"""The real-data loader: CSGNet CAD shapes, verification, error messages, download.
+"""The real-data loader (plad.data) on CSGNet's CAD shapes (plad.datasets.cad): verification, errors, download.
 
 The real file is decompressed once per module (fixture ``cad``); every error
 case works on small files in ``tmp_path`` and, where it must get past the
@@ -21,6 +21,7 @@ import pytest
 
 from plad import data
 from plad.data import DataError
+from plad.datasets import cad as cadset
 
 SPLITS = {"train": 10000, "val": 3000, "test": 3000}
 
@@ -48,14 +49,14 @@ def small_arrays(seed: int = 0) -> dict[str, np.ndarray]:
 
 
 def use_fake_spec(monkeypatch: pytest.MonkeyPatch, content: bytes, *, url: str | None = None) -> None:
-    """Make ``data.CAD`` expect ``content`` (its hash) with small_arrays' shapes."""
+    """Make ``cadset.CAD`` expect ``content`` (its hash) with small_arrays' shapes."""
     splits = tuple(
         dataclasses.replace(s, shape=(n,) + s.shape[1:])
-        for s, n in zip(data.CAD.splits, (4, 2, 3))
+        for s, n in zip(cadset.CAD.splits, (4, 2, 3))
     )
-    spec = dataclasses.replace(data.CAD, sha256=sha256(content), splits=splits,
-                               url=url or data.CAD.url)
-    monkeypatch.setattr(data, "CAD", spec)
+    spec = dataclasses.replace(cadset.CAD, sha256=sha256(content), splits=splits,
+                               url=url or cadset.CAD.url)
+    monkeypatch.setattr(cadset, "CAD", spec)
 
 
 def write(path: Path, content: bytes) -> Path:
@@ -91,7 +92,7 @@ def cad(datasets_dir: Path) -> dict[str, object]:
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(data, "_read_verified", lambda spec, path: reads.append(path) or real_read(spec, path))
         t0 = time.perf_counter()
-        arrays = {s: data.load_cad(datasets_dir, s) for s in SPLITS}
+        arrays = {s: cadset.load_cad(datasets_dir, s) for s in SPLITS}
         seconds = time.perf_counter() - t0
     return {"arrays": arrays, "seconds": seconds, "reads": reads, "dir": datasets_dir}
 
@@ -114,26 +115,26 @@ def test_real_cad_read_once_and_cached(cad, monkeypatch):
     print(f"full load of three splits from .gz: {cad['seconds']:.2f} s")
     # The module fixture cleared the cache before loading; reload to re-prime it
     # (the autouse fixture cleared it again) and then check that hits do no I/O.
-    data.load_cad(cad["dir"], "test")
+    cadset.load_cad(cad["dir"], "test")
     monkeypatch.setattr(data, "_read_verified", lambda *a: pytest.fail("cache miss"))
     t0 = time.perf_counter()
-    again = data.load_cad(cad["dir"], "train")
+    again = cadset.load_cad(cad["dir"], "train")
     assert time.perf_counter() - t0 < 0.5
     assert np.array_equal(again, cad["arrays"]["train"])
     # Callers get their own copy: mutating it must not corrupt the cache.
     again[:] = False
-    assert data.load_cad(cad["dir"], "train").any()
+    assert cadset.load_cad(cad["dir"], "train").any()
 
 
 def test_real_file_is_the_gz(datasets_dir):
-    found = data.find_dataset_file(data.CAD, datasets_dir)
+    found = data.find_dataset_file(cadset.CAD, datasets_dir)
     assert found is not None and found.name in ("cad.h5", "cad.h5.gz")
 
 
 # ------------------------------------------------------------------- splits & dir
 def test_invalid_split(tmp_path):
     with pytest.raises(ValueError, match="'train', 'val', 'test'"):
-        data.load_cad(tmp_path, "validation")
+        cadset.load_cad(tmp_path, "validation")
 
 
 def test_resolve_data_dir(monkeypatch, tmp_path):
@@ -151,7 +152,7 @@ def test_env_var_is_used_by_load(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     write(tmp_path / "cad.h5", content)
     monkeypatch.setenv("PLAD_DATA_DIR", str(tmp_path))
-    assert data.load_cad(split="val").shape == (2, 64, 64)
+    assert cadset.load_cad(split="val").shape == (2, 64, 64)
 
 
 # ------------------------------------------------------------------- file layouts
@@ -162,7 +163,7 @@ def test_every_candidate_name_loads(monkeypatch, tmp_path, rel):
     use_fake_spec(monkeypatch, content)
     write(tmp_path / rel, gzip.compress(content) if rel.endswith(".gz") else content)
     for split, key in (("train", "train_images"), ("val", "val_images"), ("test", "test_images")):
-        np.testing.assert_array_equal(data.load_cad(tmp_path, split), arrays[key])
+        np.testing.assert_array_equal(cadset.load_cad(tmp_path, split), arrays[key])
 
 
 def test_plain_file_preferred_over_gz(monkeypatch, tmp_path):
@@ -170,18 +171,18 @@ def test_plain_file_preferred_over_gz(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     write(tmp_path / "csgnet_cad/cad.h5", content)
     write(tmp_path / "csgnet_cad/cad.h5.gz", b"broken")  # would fail if it were chosen
-    assert data.find_dataset_file(data.CAD, tmp_path) == tmp_path / "csgnet_cad/cad.h5"
-    data.load_cad(tmp_path, "test")
+    assert data.find_dataset_file(cadset.CAD, tmp_path) == tmp_path / "csgnet_cad/cad.h5"
+    cadset.load_cad(tmp_path, "test")
 
 
 def test_cache_invalidated_when_file_replaced(monkeypatch, tmp_path):
     first, second = h5_bytes(small_arrays(0)), h5_bytes(small_arrays(1))
     use_fake_spec(monkeypatch, first)
     path = write(tmp_path / "cad.h5", first)
-    data.load_cad(tmp_path, "test")
+    cadset.load_cad(tmp_path, "test")
     use_fake_spec(monkeypatch, second)
     write(path, second)
-    np.testing.assert_array_equal(data.load_cad(tmp_path, "test"), small_arrays(1)["test_images"])
+    np.testing.assert_array_equal(cadset.load_cad(tmp_path, "test"), small_arrays(1)["test_images"])
 
 
 # ------------------------------------------------------------------- errors
@@ -195,7 +196,7 @@ def test_data_error_is_one_line_and_picklable():
 
 def test_missing_file(tmp_path):
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, tmp_path, "not found", "csgnet_cad/cad.h5.gz", "PLAD_DATA_DIR",
                           "data_dir", "download=True", "plad data download")
 
@@ -204,21 +205,21 @@ def test_truncated_gz(tmp_path, datasets_dir):
     real = (datasets_dir / "csgnet_cad" / "cad.h5.gz").read_bytes()
     path = write(tmp_path / "csgnet_cad" / "cad.h5.gz", real[: len(real) // 2])
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, path, "truncated gzip")
 
 
 def test_not_gzip(tmp_path):
     path = write(tmp_path / "cad.h5.gz", b"this is not gzip at all\n")
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "train")
+        cadset.load_cad(tmp_path, "train")
     assert_one_line_error(err, path, "not a gzip file")
 
 
 def test_empty_gz(tmp_path):
     path = write(tmp_path / "cad.h5.gz", b"")
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "train")
+        cadset.load_cad(tmp_path, "train")
     assert_one_line_error(err, path, "not a gzip file", "empty")
 
 
@@ -227,16 +228,16 @@ def test_corrupt_gz_body(tmp_path):
     bad = good[:20] + bytes(b ^ 0xFF for b in good[20:-8]) + good[-8:]
     path = write(tmp_path / "cad.h5.gz", bad)
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "train")
+        cadset.load_cad(tmp_path, "train")
     assert_one_line_error(err, path, "gzip")
 
 
 def test_checksum_mismatch_gz(tmp_path):
     path = write(tmp_path / "cad.h5.gz", gzip.compress(b"some other bytes"))
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, path, "sha256 of the decompressed data mismatch",
-                          data.CAD.sha256[:12], sha256(b"some other bytes")[:12])
+                          cadset.CAD.sha256[:12], sha256(b"some other bytes")[:12])
 
 
 def test_checksum_mismatch_valid_hdf5(tmp_path):
@@ -244,14 +245,14 @@ def test_checksum_mismatch_valid_hdf5(tmp_path):
     content = h5_bytes(small_arrays())
     path = write(tmp_path / "csgnet_cad" / "cad.h5", content)
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
-    assert_one_line_error(err, path, "sha256 mismatch", data.CAD.sha256[:12], sha256(content)[:12])
+        cadset.load_cad(tmp_path, "test")
+    assert_one_line_error(err, path, "sha256 mismatch", cadset.CAD.sha256[:12], sha256(content)[:12])
 
 
 def test_plain_not_hdf5_caught_by_checksum(tmp_path):
     path = write(tmp_path / "cad.h5", b"<html>Dropbox preview page</html>")
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, path, "sha256 mismatch")
 
 
@@ -260,7 +261,7 @@ def test_not_hdf5_past_checksum(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     path = write(tmp_path / "cad.h5.gz", gzip.compress(content))
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, path, "not an HDF5 file")
 
 
@@ -271,7 +272,7 @@ def test_missing_key(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     path = write(tmp_path / "cad.h5", content)
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")  # any split: the whole file is validated
+        cadset.load_cad(tmp_path, "test")  # any split: the whole file is validated
     assert_one_line_error(err, path, "missing HDF5 key 'val_images'")
 
 
@@ -282,7 +283,7 @@ def test_wrong_shape(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     path = write(tmp_path / "cad.h5", content)
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "test")
+        cadset.load_cad(tmp_path, "test")
     assert_one_line_error(err, path, "'test_images' has shape (3, 32, 64), expected (3, 64, 64)")
 
 
@@ -293,7 +294,7 @@ def test_wrong_dtype(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content)
     path = write(tmp_path / "cad.h5", content)
     with pytest.raises(DataError) as err:
-        data.load_cad(tmp_path, "train")
+        cadset.load_cad(tmp_path, "train")
     assert_one_line_error(err, path, "'train_images' has dtype uint8, expected bool")
 
 
@@ -307,7 +308,7 @@ def test_download_file_url(monkeypatch, tmp_path):
     source = write(tmp_path / "remote" / "cad.h5", content)
     use_fake_spec(monkeypatch, content)
     dest = tmp_path / "data"
-    path = data.download_cad(dest, url=source.as_uri())
+    path = cadset.download_cad(dest, url=source.as_uri())
     assert path == dest / "csgnet_cad" / "cad.h5"
     assert path.read_bytes() == content
     assert leftovers(dest / "csgnet_cad") == ["cad.h5"]  # no temp file left
@@ -317,7 +318,7 @@ def test_download_checksum_failure_leaves_nothing(monkeypatch, tmp_path):
     source = write(tmp_path / "remote" / "cad.h5", b"not the dataset")
     dest = tmp_path / "data"
     with pytest.raises(DataError) as err:
-        data.download_cad(dest, url=source.as_uri())
+        cadset.download_cad(dest, url=source.as_uri())
     assert_one_line_error(err, dest / "csgnet_cad" / "cad.h5", "downloaded sha256 mismatch",
                           source.as_uri(), "nothing was saved")
     assert leftovers(dest / "csgnet_cad") == []
@@ -327,7 +328,7 @@ def test_failed_download_keeps_existing_file(monkeypatch, tmp_path):
     existing = write(tmp_path / "csgnet_cad" / "cad.h5", b"old")
     source = write(tmp_path / "remote" / "cad.h5", b"not the dataset")
     with pytest.raises(DataError):
-        data.download_cad(tmp_path, url=source.as_uri())
+        cadset.download_cad(tmp_path, url=source.as_uri())
     assert existing.read_bytes() == b"old"
     assert leftovers(tmp_path / "csgnet_cad") == ["cad.h5"]
 
@@ -338,8 +339,8 @@ def test_download_network_error_names_url(monkeypatch, tmp_path):
 
     monkeypatch.setattr(urllib.request, "urlopen", refuse)
     with pytest.raises(DataError) as err:
-        data.download_cad(tmp_path)
-    assert_one_line_error(err, data.CAD.url, "download from", "name resolution")
+        cadset.download_cad(tmp_path)
+    assert_one_line_error(err, cadset.CAD.url, "download from", "name resolution")
     assert leftovers(tmp_path / "csgnet_cad") == []
 
 
@@ -349,7 +350,7 @@ def test_download_http_error(monkeypatch, tmp_path):
 
     monkeypatch.setattr(urllib.request, "urlopen", not_found)
     with pytest.raises(DataError) as err:
-        data.download_cad(tmp_path, url="https://example.invalid/cad.h5")
+        cadset.download_cad(tmp_path, url="https://example.invalid/cad.h5")
     assert_one_line_error(err, "https://example.invalid/cad.h5", "HTTP 404")
     assert leftovers(tmp_path / "csgnet_cad") == []
 
@@ -369,8 +370,8 @@ def test_download_interrupted_midstream(monkeypatch, tmp_path):
 
     monkeypatch.setattr(urllib.request, "urlopen", fake)
     with pytest.raises(DataError) as err:
-        data.download_cad(tmp_path, timeout=7)
-    assert_one_line_error(err, data.CAD.url, "failed after 10 bytes", "Connection reset")
+        cadset.download_cad(tmp_path, timeout=7)
+    assert_one_line_error(err, cadset.CAD.url, "failed after 10 bytes", "Connection reset")
     assert seen["timeout"] == 7
     assert leftovers(tmp_path / "csgnet_cad") == []
 
@@ -382,7 +383,7 @@ def test_load_with_download(monkeypatch, tmp_path):
     use_fake_spec(monkeypatch, content, url=source.as_uri())
     dest = tmp_path / "data"
     with pytest.raises(DataError):
-        data.load_cad(dest, "val")  # no download unless asked
-    got = data.load_cad(dest, "val", download=True)
+        cadset.load_cad(dest, "val")  # no download unless asked
+    got = cadset.load_cad(dest, "val", download=True)
     np.testing.assert_array_equal(got, arrays["val_images"])
     assert (dest / "csgnet_cad" / "cad.h5").read_bytes() == content

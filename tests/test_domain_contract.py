@@ -100,6 +100,46 @@ def test_metric_declares_its_direction(domain):
     assert not domain.metric.better(other, self_score).any()
 
 
+def test_reward_is_in_0_1_and_never_lower_for_a_better_metric_value(domain):
+    programs = domain.sample(8, np.random.default_rng(7))
+    shapes = domain.execute(pad_programs(programs))
+    values = torch.cat([domain.metric(shapes, shapes), domain.metric(shapes, shapes.roll(1, dims=0)),
+                        domain.metric(shapes, ~shapes)])
+    r = domain.reward(values)
+    assert r.shape == values.shape and ((r >= 0) & (r <= 1)).all()
+    better = domain.metric.better(values[:, None], values[None, :])
+    assert (r[:, None] >= r[None, :])[better].all()
+    assert r.max() > r.min()   # the reward tells good from bad reconstructions
+
+
+def test_display_data_and_paper_numbers_are_declared(domain):
+    assert domain.display_name and domain.display_scale > 0 and domain.display_digits >= 0
+    # the paper's numbers are keyed by method (rows of the table) and given in display units
+    for numbers in (domain.paper_table, domain.paper_per_round):
+        assert all(isinstance(k, str) and isinstance(v, float) for k, v in numbers.items())
+    assert set(domain.paper_per_round) <= set(domain.paper_table)
+
+
+def test_execute_text_writes_the_executed_grid(domain, tmp_path):
+    """``plad execute DOMAIN PROGRAM -o x.npy`` of a token program is the executor's grid."""
+    programs = domain.sample(4, np.random.default_rng(5))
+    for i, ids in enumerate(programs):
+        shown = domain.execute_text(domain.format(ids), tmp_path / f"{i}.npy")
+        assert isinstance(shown, str) and "\n" not in shown
+        assert np.array_equal(np.load(tmp_path / f"{i}.npy"), domain.execute(pad_programs([ids]))[0].numpy())
+    with pytest.raises(ValueError, match="unsupported output type"):
+        domain.execute_text(domain.format(programs[0]), tmp_path / "x.unknown")
+
+
+def test_export_formats_are_declared_and_offered(domain):
+    assert isinstance(domain.export_formats, tuple)
+    text = domain.format(domain.sample(1, np.random.default_rng(6))[0])
+    for fmt in domain.export_formats:
+        assert domain.export_text(text, fmt).strip()
+    with pytest.raises(ValueError, match="unknown export format"):
+        domain.export_text(text, "no-such-format")
+
+
 def test_target_data_has_the_domain_shape(domain, datasets_dir):
     shapes = domain.target_data("val", datasets_dir)
     assert shapes.dtype == bool and shapes.shape[1:] == domain.shape and len(shapes) > 0

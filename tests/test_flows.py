@@ -2,7 +2,6 @@
 import json
 
 import numpy as np
-
 import pytest
 
 
@@ -16,14 +15,20 @@ def prefect_harness(tmp_path_factory):
 
 def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness):
     from flows.prepare_data import prepare_data
-    from plad.stages.prepare import load_prepared
+    from plad.data import load_prepared
 
     params = tmp_path / "params.yaml"
-    params.write_text(f"prepare:\n  data_dir: {datasets_dir}\n  out_dir: {tmp_path / 'out'}\n")
+    params.write_text(f"prepare:\n  data_dir: {datasets_dir}\n  out_dir: {tmp_path / 'out'}\n"
+                      f"  domains: [csg2d, csg3d, shapeassembly]\n  limit: {{partnet: 3}}\n")
     result = prepare_data(str(params))
-    assert result["csg2d"]["val_count"] == 3000
-    assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == result["csg2d"]
+    assert result["domains"]["csg2d"]["val_count"] == 3000
+    assert result["sources"]["partnet"]["listed"] == {"train": 3, "val": 3, "test": 3}
+    for domain in ("csg2d", "csg3d", "shapeassembly"):
+        assert json.loads((tmp_path / "out" / f"{domain}.json").read_text()) == result["domains"][domain]
     assert load_prepared(tmp_path / "out" / "csg2d.npz", "val").shape == (3000, 64, 64)
+    # one PartNet build (one task) feeds both 3D domains
+    assert np.array_equal(load_prepared(tmp_path / "out" / "csg3d.npz", "test"),
+                          load_prepared(tmp_path / "out" / "shapeassembly.npz", "test"))
 
 
 SMOKE_PARAMS = """
@@ -52,6 +57,7 @@ evaluate:
     domain: csg2d
     checkpoint: {ckpt}
     prepared_dir: {prepared}
+    out_dir: unused
     limit: 6
     beam: 2
 report:
@@ -100,11 +106,11 @@ def test_retraining_schedule_is_defined_by_the_params(smoke_params):
 
 
 def test_sharded_inference_equals_one_batch(smoke_params):
-    from flows.finetune import FlowsConfig, _infer_shard
+    from flows.finetune import _infer_shard
     from plad.checkpoint import load_model
-    from plad.search import infer_batched
-    from plad.stages.prepare import load_prepared
+    from plad.data import load_prepared
     from plad.domains import get_domain
+    from plad.search import infer_batched
 
     model, _ = load_model(smoke_params.parent / "sp.pt")
     shapes = load_prepared(smoke_params.parent / "prepared" / "csg2d.npz", "val")[:10]

@@ -137,7 +137,8 @@ def test_one_architecture_dataclass_for_params_and_checkpoints():
     from plad.config import build
     from plad.stages.pretrain import PretrainConfig
 
-    cfg = build(PretrainConfig, {"model": {"d_model": 32, "n_heads": 2, "enc_channels": [4, 8]}}, "pretrain")
+    cfg = build(PretrainConfig, {"domain": "csg2d", "model": {"d_model": 32, "n_heads": 2, "enc_channels": [4, 8]}},
+                "pretrain")
     net = ModelConfig.for_domain(cfg.model, DOMAIN)
     assert net == tiny_config(n_layers=Architecture().n_layers, dim_ff=Architecture().dim_ff, enc_channels=(4, 8))
     assert set(net.to_dict()) == {f.name for f in dataclasses.fields(ModelConfig)}

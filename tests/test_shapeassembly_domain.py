@@ -6,10 +6,9 @@ import pytest
 import torch
 
 from plad.cli import main
+from plad.datasets.partnet.voxels import voxelize_batch
 from plad.domains import get_domain
-from plad.domains.base import pad_programs
 from plad.domains.shapeassembly import token_cuboids
-from plad.domains.shapeassembly.voxels import voxelize_batch
 from plad.grammar import ProgramError
 from tests.conftest import require_shared
 
@@ -74,10 +73,10 @@ def test_reflected_leg_voxels_exact():
 
 
 def test_executor_equals_the_full_language_on_the_same_statements():
-    from plad.domains.shapeassembly.execute import execute_program
-    from plad.domains.shapeassembly.lang import Block, Program
+    from plad.datasets.partnet.execute import execute_program
+    from plad.datasets.partnet.lang import Block, Program
+    from plad.datasets.partnet.voxels import voxelize
     from plad.domains.shapeassembly.tokens import to_statements
-    from plad.domains.shapeassembly.voxels import voxelize
 
     for ids in DOMAIN.sample(50, np.random.default_rng(5)):
         prog = Program({"P": Block("P", to_statements(ids))}, "P")
@@ -110,7 +109,7 @@ def test_10000_sampled_programs_satisfy_the_8_voxel_rule():
 
 
 def test_dataset_build_end_to_end(tmp_path):
-    from plad.domains.shapeassembly.dataset import build_partnet_dataset, load_split, unpack
+    from plad.datasets.partnet.dataset import build_partnet_dataset, load_split, unpack
 
     tar = require_shared("datasets/shapeassembly_partnet/partnet_programs.tar.gz")
     report = build_partnet_dataset(tar, tmp_path / "partnet_voxels.npz", limit=3)
@@ -137,7 +136,7 @@ def test_dataset_build_reports_failures(tmp_path):
     import io
     import tarfile
 
-    from plad.domains.shapeassembly.dataset import build_partnet_dataset
+    from plad.datasets.partnet.dataset import build_partnet_dataset
 
     good = "Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n}\n"
     files = {"programs/chair/1.txt": good, "programs/chair/2.txt": good.replace("cube0 = Cuboid(1, 1, 1",
@@ -162,7 +161,7 @@ def test_dataset_build_reports_failures(tmp_path):
 def test_target_data_missing_is_a_clear_data_error(tmp_path):
     from plad.data import DataError
 
-    with pytest.raises(DataError, match="built by the dataset stage"):
+    with pytest.raises(DataError, match="built by the prepare stage"):
         DOMAIN.target_data("val", tmp_path)
 
 

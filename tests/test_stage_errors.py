@@ -14,9 +14,20 @@ def test_unknown_key_is_a_one_line_error(tmp_path, capsys, module, section):
     assert len(err.splitlines()) == 1 and "no_such_key" in err and str(p) in err
 
 
+@pytest.mark.parametrize("module, section", [(synthesize, "synthesize"), (pretrain, "pretrain"),
+                                             (evaluate, "evaluate")])
+def test_a_missing_domain_is_a_one_line_error(tmp_path, capsys, module, section):
+    p = tmp_path / "params.yaml"
+    p.write_text(f"{section}:\n  seed: 1\n" if section != "evaluate" else f"{section}:\n  beam: 2\n")
+    assert module.main(["--params", str(p)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "missing key(s) " in err and "domain" in err and str(p) in err
+
+
 def test_pretrain_without_synthetic_programs_names_the_file(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"pretrain:\n  synthetic_dir: {tmp_path / 'nothing'}\n  out_dir: {tmp_path / 'runs'}\n")
+    p.write_text(f"pretrain:\n  domain: csg2d\n  synthetic_dir: {tmp_path / 'nothing'}\n"
+                 f"  out_dir: {tmp_path / 'runs'}\n")
     assert pretrain.main(["--params", str(p)]) == 1
     err = capsys.readouterr().err.strip()
     assert "synthesize stage" in err and str(tmp_path / "nothing") in err
@@ -24,6 +35,6 @@ def test_pretrain_without_synthetic_programs_names_the_file(tmp_path, capsys):
 
 def test_evaluate_with_a_missing_checkpoint_names_the_file(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"evaluate:\n  checkpoint: {tmp_path / 'none.pt'}\n  out_dir: {tmp_path / 'out'}\n")
+    p.write_text(f"evaluate:\n  domain: csg2d\n  checkpoint: {tmp_path / 'none.pt'}\n  out_dir: {tmp_path / 'out'}\n")
     assert evaluate.main(["--params", str(p)]) == 1
     assert "no such checkpoint" in capsys.readouterr().err

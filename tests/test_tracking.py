@@ -120,7 +120,7 @@ def test_stage_run_logs_params_metrics_artifact(store, client, tmp_path, monkeyp
 def test_exception_fails_run_and_propagates(store, client, tmp_path):
     with pytest.raises(ZeroDivisionError):
         with StageRun("train", "csg2d", {"a": 1}, tmp_path) as run:
-            1 / 0
+            1 / 0  # noqa: B018 (the exception under test)
     assert client.get_run(run.run_id).info.status == "FAILED"
 
 

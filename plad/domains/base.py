@@ -2,32 +2,61 @@
 
 A domain is everything that is specific to one shape language: its token
 table (grammar), the text form of programs, a batched executor, a synthetic
-program sampler, its target (real) data and its metric. Model, search,
-training methods and metrics code stay generic and only talk to this.
+program sampler, where its target (real) data comes from, its metric, its RL
+reward and how results are shown next to the paper's. Model, search,
+training methods, stages, the command line and the report stay generic and
+only talk to this; a plugin (``plad/domains/<name>/``) imports no other plugin.
+
+Required members are abstract. Optional members have a documented default
+that means "the domain does not offer this"; callers ask the domain through
+them, never by probing for attributes.
 """
 from __future__ import annotations
 
 import abc
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Sequence
+from types import MappingProxyType
 
 import numpy as np
 import torch
 
+from plad.data import TargetSource
 from plad.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
+
+_NONE: Mapping[str, float] = MappingProxyType({})
 
 
 class Domain(abc.ABC):
     """Base class of domain plugins. Subclasses set the class attributes and implement the methods."""
 
-    #: registry name, e.g. ``"csg2d"``
+    #: registry name (the key of :func:`plad.domains.get_domain`), lower case
     name: str
     #: shape of one executed program / target, e.g. ``(64, 64)`` or ``(32, 32, 32)``
     shape: tuple[int, ...]
     #: the domain's reconstruction metric (declares whether higher is better)
     metric: Metric
+
+    # -- how results are shown (optional) ---------------------------------------------------
+    #: name in tables and figures, e.g. ``"2D CSG"``; default: the registry name
+    title: str = ""
+    #: factor the metric is shown with in tables and figures (e.g. 100 for IoU in percent)
+    display_scale: float = 1.0
+    #: decimals of the shown (scaled) metric
+    display_digits: int = 3
+    #: the paper's Table 1 (test set, beam 10) for this domain: method key -> value in display units;
+    #: default: none
+    paper_table: Mapping[str, float] = _NONE
+    #: the paper supplement's numbers with P_BEST reset every round: method key -> value in display units;
+    #: default: none
+    paper_per_round: Mapping[str, float] = _NONE
+
+    @property
+    def display_name(self) -> str:
+        """:attr:`title`, else the registry name."""
+        return self.title or self.name
 
     @property
     @abc.abstractmethod
@@ -63,15 +92,76 @@ class Domain(abc.ABC):
         """``n`` valid, non-degenerate synthetic programs for supervised pretraining."""
 
     # -- real data -----------------------------------------------------------------
+    @property
     @abc.abstractmethod
+    def targets(self) -> TargetSource:
+        """Where the real target shapes come from (a dataset's source, shared by the domains on it).
+
+        The ``prepare`` stage prepares each source once and writes its splits
+        as ``<domain>.npz`` for every domain on it; the shapes must have :attr:`shape`.
+        """
+
     def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
-        """Real target shapes of a split (``train``/``val``/``test``): bool (N, *shape)."""
+        """Real target shapes of a split (``train``/``val``/``test``) from the data directory: bool (N, *shape)."""
+        return self.targets.load(split, data_dir)
+
+    # -- reinforcement learning --------------------------------------------------------------------
+    @abc.abstractmethod
+    def reward(self, values: torch.Tensor) -> torch.Tensor:
+        """The RL reward in [0, 1] of metric values (N,) of sampled programs against their targets."""
+
+    # -- command line (optional) -------------------------------------------------------------
+    def execute_text(self, text: str, output: str | os.PathLike | None) -> str:
+        """``plad execute``: run program text and write the shape to ``output`` (format by suffix).
+
+        Returns what to show the user: a short summary, or the shape itself
+        when there is no ``output``. Raises :class:`ProgramError` for a bad
+        program, ``ValueError`` for an output type the domain cannot write.
+        Default: token programs, written by :func:`save_grid`; without ``output``
+        a 2D shape is drawn as text rows ('#' inside) above the program.
+        """
+        ids = self.parse(text)
+        grid = self.execute(torch.tensor([ids]))[0].cpu().numpy()
+        if output is not None:
+            save_grid(grid, Path(output))
+            return self.format(ids)
+        if grid.ndim == 2:
+            return "\n".join("".join("#" if v else "." for v in row) for row in grid) + "\n" + self.format(ids)
+        return f"{self.format(ids)}: {int(grid.sum())} of {grid.size} cells occupied"
+
+    #: formats of ``plad export`` (program text -> another tool's file), e.g. ``("scad",)``; default: none
+    export_formats: tuple[str, ...] = ()
+
+    def export_text(self, text: str, fmt: str) -> str:
+        """``plad export``: program text -> the text of a file in format ``fmt`` (one of :attr:`export_formats`).
+
+        Raises ``ValueError`` for a format the domain does not offer (the default offers none).
+        """
+        known = ", ".join(self.export_formats) or "none"
+        raise ValueError(f"unknown export format {fmt!r} for {self.name}; known: {known}")
 
     # -- outputs of inferred programs ------------------------------------------------------------
     def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
         """Write files that carry the valid program ``ids`` into other tools, named ``stem`` plus a
         suffix (e.g. ``.svg``, ``.ply``, ``.scad``); return their paths. Default: none."""
         return []
+
+
+def save_grid(grid: np.ndarray, path: Path) -> None:
+    """Write one executed shape: ``.npy`` (bool array), or for a 2D grid ``.png`` (8-bit gray, 255 inside).
+
+    Raises ``ValueError`` naming the file for any other suffix.
+    """
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        np.save(path, grid.astype(bool))
+    elif suffix == ".png" and grid.ndim == 2:
+        from PIL import Image
+
+        Image.fromarray(grid.astype(np.uint8) * 255, mode="L").save(path)
+    else:
+        allowed = ".png or .npy" if grid.ndim == 2 else ".npy"
+        raise ValueError(f"{path}: unsupported output type {suffix or '(none)'!r}; use {allowed}")
 
 
 def pad_programs(programs: Sequence[Sequence[int]], pad: int = 0,
@@ -94,4 +184,4 @@ def split_padding(programs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return programs.clamp(min=0), (programs >= 0).sum(1)
 
 
-__all__ = ["Domain", "ProgramError", "pad_programs", "split_padding"]
+__all__ = ["Domain", "ProgramError", "pad_programs", "save_grid", "split_padding"]

@@ -3,10 +3,13 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
+
+from plad.metrics.chamfer import PENALTY, TargetFeatures, chamfer, chamfer_against
 
 
 @dataclass(frozen=True)
@@ -64,8 +67,6 @@ IOU = Metric("iou", higher_is_better=True, fn=iou, worst=0.0)
 
 def chamfer_metric() -> Metric:
     """CSGNet's Chamfer distance on 64x64 canvases (lower is better)."""
-    from plad.metrics.chamfer import PENALTY, TargetFeatures, chamfer, chamfer_against
-
     return Metric("chamfer", higher_is_better=False, fn=chamfer, worst=PENALTY,
                   prepare=TargetFeatures.of, against=chamfer_against)
 

@@ -7,7 +7,7 @@ CSGNet scores a predicted canvas P against a target T (bool 64 x 64) as
     CD = ( sum(D_T * E_P) / (sum(E_P) + 1) + sum(D_P * E_T) / (sum(E_T) + 1) ) / 2
 
 with a fixed penalty of 16 when an image or an edge map is empty or full
-(../shared/specs/csg2d.md, "Metric"). This module computes the same without
+(docs/domains.md, "Metric: Chamfer distance"). This module computes the same without
 OpenCV, on CPU or CUDA tensors, for thousands of pairs per call.
 
 Canny on a {0, 255} image
@@ -69,9 +69,9 @@ from __future__ import annotations
 import math
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
@@ -567,7 +567,7 @@ class TargetFeatures:
     degenerate: torch.Tensor
 
     @staticmethod
-    def of(targets: torch.Tensor) -> "TargetFeatures":
+    def of(targets: torch.Tensor) -> TargetFeatures:
         if targets.dim() != 3:
             raise ValueError(f"targets must be (N, H, W), got {tuple(targets.shape)}")
         t, _ = _as_batch(targets)
@@ -597,7 +597,7 @@ class TargetFeatures:
         """(H, W) of the targets."""
         return self.edges.shape[0], self.edges.shape[2]
 
-    def to(self, device: torch.device | str) -> "TargetFeatures":
+    def to(self, device: torch.device | str) -> TargetFeatures:
         return TargetFeatures(*(x.to(device) for x in (self.edges, self.dist, self.counts, self.degenerate)))
 
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any, Callable, TypeVar
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 T = TypeVar("T")
 
@@ -24,7 +25,7 @@ def stage_main(stage: str, cls: type[T], run: Callable[[T], Any], argv: list[str
     parser = argparse.ArgumentParser(prog=f"python -m plad.stages.{stage}", description=description)
     parser.add_argument("--params", default="params.yaml")
     parser.add_argument("--section", default=stage,
-                        help="params section to read (default: the stage name; a domain's: e.g. pretrain.csg2d)")
+                        help="params section to read (default: the stage name; a domain's: e.g. pretrain.<domain>)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a key of the section (dotted for nested keys; value parsed as YAML)")
     args = parser.parse_args(argv)

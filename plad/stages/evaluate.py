@@ -20,16 +20,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from plad.checkpoint import load_model, read_checkpoint
+from plad.data import load_prepared
+from plad.device import resolve_device
+from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
+from plad.pictures import pair_grid, save_png
+from plad.search import infer_batched
 from plad.stages import stage_main
+from plad.tracking import StageRun
 
 
 @dataclass
 class EvaluateConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     #: the method whose model is evaluated (a row of the results table)
     method: str = "sp"
-    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    checkpoint: str = field(kw_only=True)
     prepared_dir: str = "data/prepared"
     splits: list[str] = field(default_factory=lambda: ["test"])
     beam: int = 10
@@ -39,7 +46,7 @@ class EvaluateConfig:
     grid_shapes: int = 16
     device: str = "auto"
     threads: int | None = None
-    out_dir: str = "results/eval/sp/csg2d"
+    out_dir: str = field(kw_only=True)
 
 
 def grid_indices(n: int, k: int) -> np.ndarray:
@@ -48,13 +55,6 @@ def grid_indices(n: int, k: int) -> np.ndarray:
 
 
 def evaluate(cfg: EvaluateConfig) -> dict:
-    from plad.checkpoint import load_model
-    from plad.device import resolve_device
-    from plad.domains import get_domain
-    from plad.search import infer_batched
-    from plad.stages.prepare import load_prepared
-    from plad.viz import pair_grid, save_png
-
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device)
@@ -90,9 +90,6 @@ def evaluate(cfg: EvaluateConfig) -> dict:
 
 def tracked_evaluate(cfg: EvaluateConfig) -> dict:
     """:func:`evaluate` as an MLflow run: the metric per split and the outputs as artifacts."""
-    from plad.checkpoint import read_checkpoint
-    from plad.tracking import StageRun
-
     read_checkpoint(cfg.checkpoint)  # a missing or bad checkpoint fails before any MLflow run starts
     out = Path(cfg.out_dir)
     with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=cfg.method) as run:

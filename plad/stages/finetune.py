@@ -29,10 +29,10 @@ from plad.stages import stage_main
 
 @dataclass
 class FinetuneStageConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     #: which entry of ``methods`` this run trains (set per DVC stage)
     key: str | None = None
-    checkpoint: str = "runs/pretrain/csg2d/best.pt"
+    checkpoint: str = field(kw_only=True)
     prepared_dir: str = "data/prepared"
     out_dir: str = "runs/finetune"
     #: where the run summary is copied for DVC metrics: <summary_dir>/<domain>/<key>.json
@@ -77,7 +77,7 @@ def run_dir(cfg: FinetuneStageConfig) -> Path:
 
 def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
     """(training shapes, validation shapes) of the real data, limited as configured."""
-    from plad.stages.prepare import load_prepared
+    from plad.data import load_prepared
 
     path = Path(cfg.prepared_dir) / f"{cfg.domain}.npz"
     train, val = load_prepared(path, "train"), load_prepared(path, "val")

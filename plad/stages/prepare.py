@@ -1,70 +1,78 @@
-"""Stage ``prepare``: verify the real target shapes and write them compactly.
+"""Stage ``prepare``: the real target shapes S* of every domain, verified and written compactly.
 
-Reads each domain's real data from the data directory (checked against its
-sha256), and writes ``<out_dir>/<domain>.npz`` (bit-packed splits) plus
-``<out_dir>/<domain>.json`` (counts and occupancy), atomically.
+Each domain names where its real shapes come from (its target source,
+:attr:`plad.domains.base.Domain.targets`). Every source of the configured
+domains is prepared once from the data directory (a published file is
+checked against its sha256; PartNet's programs are executed and voxelized,
+with a report and a failures log, see :mod:`plad.datasets.partnet.dataset`),
+and its splits are written as ``<out_dir>/<domain>.npz`` (bit-packed) plus
+``<out_dir>/<domain>.json`` (counts and occupancy) for every domain on it,
+atomically (:func:`plad.data.write_prepared`).
 """
 from __future__ import annotations
 
-import json
-import os
 import sys
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 
-import numpy as np
-
-from plad.fsutil import atomic_write, atomic_write_text
 from plad.stages import stage_main
-
-SPLITS = ("train", "val", "test")
 
 
 @dataclass
 class PrepareConfig:
+    #: domains whose real shapes are prepared
+    domains: list[str] = field(kw_only=True)
     #: directory holding the datasets; null means $PLAD_DATA_DIR, else ./data/datasets
     data_dir: str | None = None
-    #: domains whose real data is prepared
-    domains: list[str] = field(default_factory=lambda: ["csg2d"])
     out_dir: str = "data/prepared"
+    #: target source name -> keep only the first N shapes of each split (smoke runs); a source not named: all
+    limit: dict[str, int] = field(default_factory=dict)
+
+
+def target_groups(domains: list[str]) -> dict[str, list[str]]:
+    """Target source name -> the given domains on it, in the order given."""
+    from plad.domains import get_domain
+
+    groups: dict[str, list[str]] = {}
+    for name in domains:
+        groups.setdefault(get_domain(name).targets.name, []).append(name)
+    return groups
 
 
 def prepare(cfg: PrepareConfig) -> dict[str, dict]:
-    """Load, verify and pack every configured domain's real splits; returns the summaries."""
+    """Prepare each target source of ``cfg.domains`` once and write its splits for every domain on it.
+
+    Returns ``{"domains": {domain: summary}, "sources": {source: report}}``.
+    """
+    from plad.config import ConfigError
+    from plad.data import write_prepared
     from plad.domains import get_domain
 
-    summaries = {}
-    for name in cfg.domains:
-        domain = get_domain(name)
-        splits = {s: domain.target_data(s, cfg.data_dir) for s in SPLITS}
-        summaries[name] = write_prepared(name, tuple(domain.shape), splits, cfg.out_dir)
-    return summaries
+    groups = target_groups(cfg.domains)
+    for source, n in cfg.limit.items():
+        if source not in groups:
+            raise ConfigError(f"prepare.limit: {source!r} is not the target source of a configured domain "
+                              f"(sources: {', '.join(groups)})")
+        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+            raise ConfigError(f"prepare.limit.{source} = {n!r} should be a non-negative integer")
+    out: dict[str, dict] = {"domains": {}, "sources": {}}
+    for source_name, names in groups.items():
+        domains = [get_domain(name) for name in names]
+        prepared = domains[0].targets.prepare(cfg.data_dir, cfg.out_dir, cfg.limit.get(source_name))
+        for domain in domains:
+            got = prepared.splits["train"].shape[1:]
+            if tuple(domain.shape) != got:
+                raise ValueError(f"domain {domain.name} works on {domain.shape}, its target source "
+                                 f"{source_name} gives {got}")
+            out["domains"][domain.name] = write_prepared(domain.name, tuple(domain.shape), prepared.splits,
+                                                         cfg.out_dir, prepared.provenance)
+        out["sources"][source_name] = prepared.report
+    return out
 
 
-def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarray], out_dir: str | os.PathLike,
-                   extra: dict | None = None) -> dict:
-    """Write ``<out_dir>/<name>.npz`` (bit-packed splits) and its ``.json`` summary; returns the summary."""
-    arrays = {s: np.packbits(x.reshape(len(x), -1), axis=1) for s, x in splits.items()}
-    arrays["shape"] = np.asarray(shape)
-    summary = {
-        "domain": name,
-        "shape": list(shape),
-        **{f"{s}_count": int(len(x)) for s, x in splits.items()},
-        **{f"{s}_occupancy": round(float(x.mean()), 6) if len(x) else 0.0 for s, x in splits.items()},
-        **(extra or {}),
-    }
-    out = Path(out_dir)
-    atomic_write(out / f"{name}.npz", lambda fh: np.savez_compressed(fh, **arrays))
-    atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2) + "\n")
-    return summary
-
-
-def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
-    """Read one split back from a prepared ``.npz``: bool (N, *shape)."""
-    with np.load(path) as z:
-        shape = tuple(int(v) for v in z["shape"])
-        packed = z[split]
-    return np.unpackbits(packed, axis=1, count=int(np.prod(shape))).astype(bool).reshape(-1, *shape)
+def prepare_sources(cfg: PrepareConfig) -> list[PrepareConfig]:
+    """``cfg`` split by target source: each part prepares one source (e.g. a parallel task each)."""
+    return [replace(cfg, domains=names, limit={k: v for k, v in cfg.limit.items() if k == source})
+            for source, names in target_groups(cfg.domains).items()]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,9 +14,9 @@ import csv
 import json
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ from plad.train import TrainConfig, fit
 
 @dataclass
 class PretrainConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     synthetic_dir: str = "data/synthetic"
     out_dir: str = "runs/pretrain"
     #: "auto" (CUDA when present), "cpu" or "cuda"

@@ -14,14 +14,19 @@ import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from plad.config import ConfigError
+from plad.data import DataError
+from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
+from plad.report import convergence_png, from_files, from_mlflow, table_markdown
 from plad.stages import stage_main
+from plad.tracking import StageRun, set_champion, set_version_tags
 
 
 @dataclass
 class ReportConfig:
     #: the table's columns
-    domains: list[str] = field(default_factory=lambda: ["csg2d"])
+    domains: list[str] = field(kw_only=True)
     #: rows of the table, in order (keys of finetune.methods, plus "sp")
     methods: list[str] = field(default_factory=lambda: ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws"])
     #: all-time method key -> its per-round variant, for the P_BEST comparison
@@ -40,9 +45,6 @@ class ReportConfig:
 
 def gather(cfg: ReportConfig) -> dict:
     """{domain: [MethodResult per method]} from the configured source."""
-    from plad.config import ConfigError
-    from plad.report import from_files, from_mlflow
-
     keys = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values()]))
     if cfg.source == "files":
         return {d: from_files(d, keys, cfg.results_dir, cfg.finetune_dir) for d in cfg.domains}
@@ -56,8 +58,6 @@ def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | Non
 
     SP competes with its own validation value, the first point of every curve.
     """
-    from plad.domains import get_domain
-
     metric = get_domain(domain).metric
     candidates = []
     for r in results:
@@ -75,9 +75,6 @@ def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | Non
 
 
 def report(cfg: ReportConfig) -> dict:
-    from plad.data import DataError
-    from plad.report import convergence_png, table_markdown
-
     results = gather(cfg)
     missing = [f"{d}/{r.key}" for d, rs in results.items() for r in rs if r.test is None]
     if missing:
@@ -101,16 +98,12 @@ def report(cfg: ReportConfig) -> dict:
 
 def tracked_report(cfg: ReportConfig) -> dict:
     """:func:`report` as an MLflow run; registers each domain's champion as ``plad-<domain>@champion``."""
-    from plad.tracking import StageRun, set_champion
-
     out = Path(cfg.out_dir)
     with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run") as run:
         summary = report(cfg)
         for name in ["table.md", "convergence.png", "report.json"]:
             run.log_artifact(out / name)
         if cfg.register:
-            import mlflow
-            client = mlflow.MlflowClient()
             for d, entry in summary["domains"].items():
                 if "champion" not in entry:
                     continue
@@ -120,8 +113,7 @@ def tracked_report(cfg: ReportConfig) -> dict:
                 name = f"plad-{d}"
                 version = run.log_model(ckpt, registered_name=name).rsplit("/", 1)[-1]
                 set_champion(name, version)
-                client.set_model_version_tag(name, version, "plad.method", key)
-                client.set_model_version_tag(name, version, "plad.test", str(entry["test"].get(key)))
+                set_version_tags(name, version, {"plad.method": key, "plad.test": entry["test"].get(key)})
                 entry["champion"].update(model=f"models:/{name}@champion", version=version)
             atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
     return summary

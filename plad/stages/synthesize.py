@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,7 @@ from plad.stages import stage_main
 
 @dataclass
 class SynthesizeConfig:
-    domain: str = "csg2d"
+    domain: str = field(kw_only=True)
     train_programs: int = 100_000
     val_programs: int = 1_000
     seed: int = 0

@@ -1,4 +1,4 @@
-"""Independent per-program 2D CSG renderer, written from the spec's rendering facts.
+"""Independent per-program 2D CSG renderer, written from the rendering rules (docs/domains.md).
 
 It shares no code with ``plad``: it parses the program text itself, draws each
 primitive with scikit-image and evaluates the postfix program with numpy.

@@ -1,4 +1,4 @@
-"""Independent per-program 3D CSG renderer, written straight from the spec (``csg3d.md``).
+"""Independent per-program 3D CSG renderer, written straight from docs/domains.md (3D CSG).
 
 It shares no code with ``plad``: it reads the program text itself (prefix,
 whitespace separated), evaluates each primitive's inside test at every voxel

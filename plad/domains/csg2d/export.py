@@ -3,7 +3,7 @@
 Coordinates are the canvas' pixel units: pixel (row, col) covers
 [col, col + 1] x [row, row + 1], so the SVG's 64 x 64 view box is the canvas.
 Primitives are drawn as the geometric shapes behind CSGNet's pixel renderer
-(spec ``csg2d.md``): a circle of radius r around the pixel center (x, y), the
+(docs/domains.md, "Rendering"): a circle of radius r around the pixel center (x, y), the
 square and the triangle through the corner pixels it fills.
 
 Every operation is representable. Union draws both operands; intersection
@@ -18,7 +18,7 @@ canvases.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

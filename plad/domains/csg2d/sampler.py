@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from plad.domains.csg2d.executor import Executor
 from plad.domains.base import pad_programs
+from plad.domains.csg2d.executor import Executor
+from plad.domains.synthetic import stratified_rejection_sample
 
 MAX_PRIMITIVES = 7
 
@@ -37,35 +38,27 @@ def _structure(k: int, rng: np.random.Generator) -> list[bool]:
 
 def sample_programs(executor: Executor, n: int, rng: np.random.Generator,
                     min_primitives: int = 1, max_primitives: int = MAX_PRIMITIVES) -> list[list[int]]:
-    """``n`` valid non-degenerate programs (token ids, ending with ``$``)."""
+    """``n`` valid non-degenerate programs (token ids, ending with ``$``), uniform over the primitive count."""
     table = executor.table
     draws = np.array([i for i, t in enumerate(table.tokens) if t.kind == "draw"])
     ops = np.array([i for i, t in enumerate(table.tokens) if t.kind in ("union", "intersection", "difference")])
     stop = table.index("$")
-    # Equal numbers of programs per primitive count: short programs are rejected
-    # far less often, so sampling k uniformly and filtering would skew lengths.
-    counts = np.bincount(rng.integers(min_primitives, max_primitives + 1, size=n),
-                         minlength=max_primitives + 1)
-    kept: dict[int, list[list[int]]] = {k: [] for k in range(min_primitives, max_primitives + 1)}
-    while True:
-        wanted = {k: int(counts[k]) - len(kept[k]) for k in kept if counts[k] > len(kept[k])}
-        if not wanted:
-            break
+
+    def propose(wanted: dict[int, int], rates, rng: np.random.Generator) -> tuple[list[int], list[list[int]]]:
         ks, progs = [], []
         for k, missing in wanted.items():
             for _ in range(max(32, 3 * missing)):
                 ks.append(k)
                 progs.append(_random_program(k, draws, ops, stop, rng))
+        return ks, progs
+
+    def accept(progs: list[list[int]]) -> list[bool]:
         words, degenerate = executor.run_packed(pad_programs(progs, pad=stop), check_degenerate=True)
         empty = (words == 0).all(dim=1)
         full = (words == -1).all(dim=1)
-        good = (~(degenerate | empty | full)).tolist()
-        for k, prog, g in zip(ks, progs, good):
-            if g and len(kept[k]) < counts[k]:
-                kept[k].append(prog)
-    out = [p for k in kept for p in kept[k]]
-    order = rng.permutation(len(out))
-    return [out[i] for i in order]
+        return (~(degenerate | empty | full)).tolist()
+
+    return stratified_rejection_sample(n, rng, range(min_primitives, max_primitives + 1), propose, accept)
 
 
 def _random_program(k: int, draws: np.ndarray, ops: np.ndarray, stop: int,

@@ -3,10 +3,10 @@
 Vocabulary rule (documented, checked by a test against CSGNet's 396 draw
 tokens): every combination of kind in {circle ``c``, square ``s``, triangle
 ``t``}, x and y in {8, 16, ..., 56} and r in {8, 12, ..., 32} whose primitive,
-rendered by the facts of the spec without clipping, is non-empty and lies
-entirely inside the 64 x 64 canvas. That gives 424 draw tokens (CSGNet keeps
-396 of them), then the operators ``+`` (union), ``*`` (intersection),
-``-`` (difference) and the stop token ``$``.
+rendered by CSGNet's pixel rules (docs/domains.md, "Rendering") without
+clipping, is non-empty and lies entirely inside the 64 x 64 canvas. That
+gives 424 draw tokens (CSGNet keeps 396 of them), then the operators ``+``
+(union), ``*`` (intersection), ``-`` (difference) and the stop token ``$``.
 
 Programs are postfix; see :mod:`plad.grammar` for how the stack machine
 (``shape`` symbols) makes the grammar data.

@@ -5,7 +5,7 @@ bit z is voxel [x, y, z] (all 32 bits used; bit 31 is the sign bit, which
 bitwise operations do not care about). A Boolean operation on two shapes is
 1024 word operations instead of 32768 bool ones.
 
-Primitives, exactly as the spec's inside tests with voxel center p = (x, y, z)
+Primitives, exactly as the inside tests of docs/domains.md with voxel center p = (x, y, z)
 in index units: every column (x, y) of a cuboid or an ellipsoid is one
 interval of z symmetric about c_z, so a primitive is rendered per column and
 its z bits come from a lookup table. Everything is integer arithmetic, so

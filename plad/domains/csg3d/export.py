@@ -6,8 +6,8 @@ indexed [x, y, z] is centered at (i, j, k), so a mesh or SCAD solid lies in
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -32,7 +32,7 @@ def mesh_arrays(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def save_mesh(grid: np.ndarray, path: str | Path) -> None:
     """Write the surface of a voxel grid as a triangle mesh (.ply or .obj) with open3d."""
-    from plad.meshio import write_mesh
+    from plad.mesh import write_mesh
 
     write_mesh(*mesh_arrays(grid), path)
 

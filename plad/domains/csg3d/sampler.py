@@ -1,4 +1,4 @@
-"""Synthetic 3D CSG programs for supervised pretraining (paper supplement; spec ``csg3d.md``).
+"""Synthetic 3D CSG programs for supervised pretraining (paper supplement; docs/domains.md).
 
 1. K primitives, K uniform in 2..12, each a cuboid or an ellipsoid (50/50).
    Per axis, the center is a rounded normal (mean 16, sd 16/3) resampled
@@ -16,7 +16,9 @@
    some operator's result is empty or equal to one of its operands.
 
 Quotas per K keep the accepted programs uniform over K (programs with more
-primitives are rejected more often, so filtering a uniform K would skew it).
+primitives are rejected more often, so filtering a uniform K would skew it;
+:mod:`plad.domains.synthetic`); each batch proposes per K about what the
+last batch's acceptance rate of K says is needed.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ import numpy as np
 from plad.domains.base import pad_programs
 from plad.domains.csg3d.executor import Executor
 from plad.domains.csg3d.tokens import OPERATORS, PRIMITIVES, RES
+from plad.domains.synthetic import stratified_rejection_sample
 
 MIN_PRIMITIVES, MAX_PRIMITIVES = 2, 12
 CENTER_MEAN, CENTER_SD, CENTER_LO, CENTER_HI = RES / 2, RES / 6, 2, RES - 2
@@ -97,28 +100,18 @@ def sample_programs(executor: Executor, n: int, rng: np.random.Generator,
     """``n`` valid non-degenerate programs (token ids), uniform over the number of primitives."""
     table = executor.table
     assert set(OPERATORS) <= set(table.names)
-    counts = np.bincount(rng.integers(min_primitives, max_primitives + 1, size=n), minlength=max_primitives + 1)
-    kept: dict[int, list[list[int]]] = {k: [] for k in range(min_primitives, max_primitives + 1)}
-    accept = {k: 0.5 for k in kept}                                       # running acceptance-rate estimates
-    while True:
-        wanted = {k: int(counts[k]) - len(kept[k]) for k in kept if counts[k] > len(kept[k])}
-        if not wanted:
-            break
+
+    def propose(wanted: dict[int, int], rates: dict[int, float],
+                rng: np.random.Generator) -> tuple[list[int], list[list[int]]]:
         ks: list[int] = []
         for k, missing in wanted.items():
             # enough candidates for the expected rejections, a few more for luck
-            ks += [k] * min(batch, int(missing / max(accept[k], 0.05) * 1.2) + 8)
-        progs = [table.encode(names) for names in candidates(ks, rng)]
+            ks += [k] * min(batch, int(missing / max(rates[k], 0.05) * 1.2) + 8)
+        return ks, [table.encode(names) for names in candidates(ks, rng)]
+
+    def accept(progs: list[list[int]]) -> list[bool]:
         _, degenerate = executor.run_packed(pad_programs(progs), check_degenerate=True)
-        tried = {k: 0 for k in wanted}
-        good = {k: 0 for k in wanted}
-        for k, prog, bad in zip(ks, progs, degenerate.tolist()):
-            tried[k] += 1
-            if not bad:
-                good[k] += 1
-                if len(kept[k]) < counts[k]:
-                    kept[k].append(prog)
-        for k in wanted:
-            accept[k] = max(good[k], 1) / tried[k]
-    out = [p for k in kept for p in kept[k]]
-    return [out[i] for i in rng.permutation(len(out))]
+        return (~degenerate).tolist()
+
+    return stratified_rejection_sample(n, rng, range(min_primitives, max_primitives + 1), propose, accept,
+                                       initial_rate=0.5)

@@ -1,4 +1,4 @@
-"""3D CSG vocabulary, grammar and text form (spec ``csg3d.md``, paper supplement).
+"""3D CSG vocabulary, grammar and text form (docs/domains.md, paper supplement).
 
 A program is prefix notation over a 32^3 voxel grid::
 
@@ -8,9 +8,9 @@ A program is prefix notation over a 32^3 voxel grid::
 ``diff A B`` is A AND NOT B. The six integers of a primitive are, in voxel
 index units, its center (x, y, z) and then its full extents (dx, dy, dz).
 
-Vocabulary (36 domain tokens, in the spec's order): ``cuboid``,
+Vocabulary (36 domain tokens): ``cuboid``,
 ``ellipsoid``, ``union``, ``inter``, ``diff``, then ``1`` .. ``31``. The
-spec's ``start`` token is the model's own input-only BOS token
+paper's ``start`` token is the model's own input-only BOS token
 (:class:`plad.model.ModelConfig.bos`), which every domain gets; it is never
 predicted, so it is not a domain token. There is no end token: a program is
 complete when no argument is still open, which the stack machine expresses
@@ -25,8 +25,8 @@ The paper's names ``intersect``/``subtract`` (and ``intersection``/
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Sequence
 
 from plad.grammar import ProgramError, Token, TokenTable
 

@@ -1,13 +1,14 @@
 """ShapeAssembly domain: PLAD's discretized, non-hierarchical ShapeAssembly on 32^3 voxels.
 
-Modules: :mod:`.lang` (full hierarchical language text), :mod:`.execute`
-(executor to oriented cuboids), :mod:`.voxels` (32^3 voxelization),
-:mod:`.export` (mesh and PNG), :mod:`.tokens` (the discretized token
-language), :mod:`.sampler` (synthetic programs), :mod:`.dataset` (PartNet
-target shapes).
+Modules: :mod:`.tokens` (the discretized token language), :mod:`.sampler`
+(synthetic programs), :mod:`.export` (mesh and PNG). Token programs are
+turned into statements of the full hierarchical language and run by its
+executor and voxelizer, which live with the PartNet dataset
+(:mod:`plad.datasets.partnet`) because they define its shapes; the real
+target shapes are those.
 
 Executed shapes are bool (B, 32, 32, 32) indexed [x, y, z] on the grid of
-the real data (voxel centers ``(i+.5)/32 - .5``, spec section 5, with the same
+the real data (voxel centers ``(i+.5)/32 - .5``, docs/shapeassembly.md, with the same
 0.55-voxel minimum half-extent). A token program's bbox is ``1 x h/32 x 1``
 centered at the origin, i.e. already in that centered unit cube, so it is not
 renormalized. A program whose execution fails numerically (a cuboid frame
@@ -16,18 +17,19 @@ becomes singular) executes to the empty shape.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from functools import cached_property
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 
+from plad.data import TargetSource
+from plad.datasets.partnet.execute import ExecutionError, execute_program
+from plad.datasets.partnet.lang import Block, Program
+from plad.datasets.partnet.voxels import RES, voxelize_batch
 from plad.domains.base import Domain
-from plad.domains.shapeassembly.execute import ExecutionError, execute_program
-from plad.domains.shapeassembly.lang import Block, Program
 from plad.domains.shapeassembly.tokens import format_program, parse, to_statements, token_table
-from plad.domains.shapeassembly.voxels import RES, voxelize_batch
 from plad.grammar import TokenTable
 from plad.metrics import IOU, Metric
 
@@ -40,7 +42,7 @@ def _copy_name(parent: str, index: int | None) -> str:
 def token_cuboids(ids: Sequence[int]) -> np.ndarray:
     """Cuboids (n, 15) float32 of a valid token program (copies included), in the bbox frame.
 
-    Raises :class:`~plad.domains.shapeassembly.execute.ExecutionError` if a
+    Raises :class:`~plad.datasets.partnet.execute.ExecutionError` if a
     frame becomes singular.
     """
     program = Program({"Program_0": Block("Program_0", to_statements(ids))}, "Program_0")
@@ -50,6 +52,11 @@ def token_cuboids(ids: Sequence[int]) -> np.ndarray:
 class ShapeAssembly(Domain):
     name = "shapeassembly"
     shape = (RES, RES, RES)
+    title = "ShapeAssembly"
+    # IoU shown in percent, as in the paper
+    display_scale, display_digits = 100.0, 1
+    #: Table 1 of the paper: test IoU x 100, beam 10
+    paper_table = {"sp": 37.6, "rl": 50.8, "ws": 57.2, "st": 61.3, "lest": 56.5, "lest_st": 66.0, "lest_st_ws": 66.4}
 
     @property
     def metric(self) -> Metric:  # type: ignore[override]
@@ -101,22 +108,28 @@ class ShapeAssembly(Domain):
 
         return sample_programs(self, n, generator)
 
-    def target_data(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
-        from plad.domains.shapeassembly.dataset import load_split
+    @property
+    def targets(self) -> TargetSource:
+        """The PartNet shapes, the programs this language was discretized from, voxelized at 32^3."""
+        from plad.datasets.partnet.dataset import TARGETS
 
-        return load_split(split, data_dir)
+        return TARGETS
+
+    def reward(self, values: torch.Tensor) -> torch.Tensor:
+        """The IoU itself (already in [0, 1])."""
+        return values.clamp(0, 1)
 
     # ---- command line -------------------------------------------------------------------
     def execute_text(self, text: str, output: str | os.PathLike | None) -> str:
         """``plad execute shapeassembly``: full-language text or token text -> file.
 
         Output by suffix: ``.npy`` the 32^3 bool grid [x, y, z] (full-language
-        shapes normalized by their tight bounds, spec section 5), ``.ply``/``.obj``
+        shapes normalized by their tight bounds, docs/shapeassembly.md), ``.ply``/``.obj``
         a mesh of the cuboids, ``.png`` three orthographic views. Returns a
         one-line summary.
         """
-        from plad.domains.shapeassembly.execute import run_text
-        from plad.domains.shapeassembly.voxels import voxelize
+        from plad.datasets.partnet.execute import run_text
+        from plad.datasets.partnet.voxels import voxelize
 
         if "Assembly" in text or "Cuboid(" in text:
             cuboids = run_text(text)

@@ -21,7 +21,8 @@ spirit of the supplement:
 
 Every candidate is executed and rejected unless each cuboid (copies
 included) owns at least 8 voxels of the 32^3 grid that no other cuboid
-occupies, or if it is longer than the 100-token cap.
+occupies, or if it is longer than the 100-token cap. Equal numbers of
+programs per K come from :mod:`plad.domains.synthetic`.
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 
 from plad.domains.shapeassembly.tokens import MAX_LEN, token_table
+from plad.domains.synthetic import stratified_rejection_sample
 
 MIN_PARTS, MAX_PARTS = 2, 8
 MIN_UNIQUE_VOXELS = 8
@@ -59,7 +61,8 @@ def _random_program(k: int, rng: np.random.Generator) -> list[str]:
 
         def target() -> str:
             nonlocal used_target
-            pool = [t for t in targets if t != used_target] or targets
+            # called within this iteration only: `targets` is this cuboid's list
+            pool = [t for t in targets if t != used_target] or targets  # noqa: B023
             used_target = pool[rng.integers(len(pool))]
             return used_target
 
@@ -96,14 +99,10 @@ def _random_program(k: int, rng: np.random.Generator) -> list[str]:
 
 def sample_programs(domain, n: int, rng: np.random.Generator, min_parts: int = MIN_PARTS,
                     max_parts: int = MAX_PARTS, batch: int = 512) -> list[list[int]]:
-    """``n`` valid programs (token ids) satisfying the 8-unique-voxel rule."""
+    """``n`` valid programs (token ids) satisfying the 8-unique-voxel rule, uniform over the part count."""
     table = token_table()
-    counts = np.bincount(rng.integers(min_parts, max_parts + 1, size=n), minlength=max_parts + 1)
-    kept: dict[int, list[list[int]]] = {k: [] for k in range(min_parts, max_parts + 1)}
-    while True:
-        wanted = {k: int(counts[k]) - len(kept[k]) for k in kept if counts[k] > len(kept[k])}
-        if not wanted:
-            break
+
+    def propose(wanted: dict[int, int], rates, rng: np.random.Generator) -> tuple[list[int], list[list[int]]]:
         ks, progs = [], []
         for k, missing in wanted.items():
             for _ in range(min(batch, max(16, 2 * missing))):
@@ -111,14 +110,13 @@ def sample_programs(domain, n: int, rng: np.random.Generator, min_parts: int = M
                 if len(ids) <= MAX_LEN:
                     ks.append(k)
                     progs.append(ids)
+        return ks, progs
+
+    def accept(progs: list[list[int]]) -> list[bool]:
         _, unique, owner, ok = domain.run_batch(progs)
         # per program: the fewest voxels any of its cuboids owns alone
         fewest = torch.full((len(progs),), 1 << 30, dtype=torch.long)
         fewest.scatter_reduce_(0, owner, unique, reduce="amin")
-        good = (ok & (fewest >= MIN_UNIQUE_VOXELS)).tolist()
-        for k, prog, g in zip(ks, progs, good):
-            if g and len(kept[k]) < counts[k]:
-                kept[k].append(prog)
-    out = [p for k in kept for p in kept[k]]
-    order = rng.permutation(len(out))
-    return [out[i] for i in order]
+        return (ok & (fewest >= MIN_UNIQUE_VOXELS)).tolist()
+
+    return stratified_rejection_sample(n, rng, range(min_parts, max_parts + 1), propose, accept)

@@ -1,4 +1,6 @@
-"""The discretized, non-hierarchical ShapeAssembly of PLAD (spec section 9): tokens and text.
+"""The discretized, non-hierarchical ShapeAssembly of PLAD: tokens and text.
+
+The rules: docs/shapeassembly.md, "The discretized language of the domain".
 
 A program is one flat block::
 
@@ -27,10 +29,10 @@ END); ``C{m}`` a cuboid reference made by mover m; ``N``, ``face``, ``fpos``,
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import Sequence
 
-from plad.domains.shapeassembly.lang import AXES, FACES, Stmt
+from plad.datasets.partnet.lang import AXES, FACES, Stmt
 from plad.grammar import ProgramError, Token, TokenTable
 
 RES = 32
@@ -120,7 +122,7 @@ def _cind(j: int) -> str:
 
 def attach_points(face: str, to_bbox: bool, mover_uv: tuple[float, float],
                   target_uv: tuple[float, float]) -> tuple[list[float], list[float]]:
-    """Local points (mover q1, target q2) of ``Attach cind face fpos fpos`` (spec section 9).
+    """Local points (mover q1, target q2) of ``Attach cind face fpos fpos`` (docs/shapeassembly.md).
 
     The mover's coordinate on the face axis is 1 for right/top/front and 0
     otherwise; the target uses the opposite side, except the bbox with top/bot

@@ -1,12 +1,14 @@
 """ShapeAssembly executor: statements -> world-space oriented cuboids.
 
-Implements ``../shared/specs/shapeassembly.md`` sections 2-4 (block
-execution, attach/grow/second/general attach, squeeze, reflect, translate,
-the breadth-first hierarchy with flipped sub-assemblies).
+Implements the rules of ``docs/shapeassembly.md``, "Geometry" to
+"Sub-assemblies" (block execution, attach/grow/second/general attach,
+squeeze, reflect, translate, the breadth-first hierarchy with flipped
+sub-assemblies).
 
 Numerics: the original computes in float32 and several decisions are knife
-edges (spec section 7), so all cuboid state is float32 numpy and relative
-coordinates are solved with LAPACK in float32 like the original.
+edges (docs/shapeassembly.md, "Numerics"), so all cuboid state is float32
+numpy and relative coordinates are solved with LAPACK in float32 like the
+original.
 
 Speed: the original spends most of its time in the grow step, a brute-force
 nearest-neighbour search between two 1000-point lattices. Here that search
@@ -24,7 +26,7 @@ from collections import deque
 
 import numpy as np
 
-from plad.domains.shapeassembly.lang import FACES, Program, SAParseError, Stmt
+from plad.datasets.partnet.lang import FACES, Program, SAParseError, Stmt
 
 F32 = np.float32
 _EYE = np.eye(3, dtype=F32)
@@ -79,7 +81,7 @@ class Cuboid:
         return np.linalg.solve(a, rhs).T.astype(F32, copy=False)
 
     def change(self, q: np.ndarray, a: int) -> np.ndarray:
-        """How world(q) moves per unit increase of dims[a] (the spec's change vector)."""
+        """How world(q) moves per unit increase of dims[a] (the change vector of docs/shapeassembly.md)."""
         return (q[a] - _HALF) * self.axes[a]
 
     def corners(self) -> np.ndarray:
@@ -107,7 +109,7 @@ def _rotation(angle: F32, n: np.ndarray) -> np.ndarray:
 
 
 def _min_rotation(cur: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Minimal rotation taking direction ``cur`` to ``target`` (spec 3.2.2 step 5)."""
+    """Minimal rotation taking direction ``cur`` to ``target`` (docs/shapeassembly.md, "Second attach", step 4)."""
     ncur = cur / _norm(cur)
     ntar = target / _norm(target)
     normal = _cross(ncur, ntar)
@@ -219,7 +221,7 @@ class BlockState:
         a.moves.append((q1, b_name))
 
     def _grow(self, a: Cuboid, b: Cuboid) -> None:
-        """Aligned mover with records: push the side facing b across the gap (spec 3.2.1)."""
+        """Aligned mover with records: push the side facing b across the gap (docs/shapeassembly.md, "Grow")."""
         for inner, outer in ((b, a), (a, b)):
             r = inner.rel(outer.corners())                       # (8, 3)
             if np.any((r.min(1) >= 0) & (r.max(1) <= 1)):
@@ -242,7 +244,7 @@ class BlockState:
         a.pos = a.pos + (anchor - a.world(opposite))
 
     def _second(self, a: Cuboid, q1: np.ndarray, g: np.ndarray, qp: np.ndarray, gp: np.ndarray) -> None:
-        """Unaligned mover with one record: scale one dimension, then swing about the record (3.2.2)."""
+        """Unaligned mover with one record: scale one dimension, then swing about the record ("Second attach")."""
         b = a.world(q1)
         if _norm(b - g) < SMALL_EPS:
             return
@@ -284,7 +286,7 @@ class BlockState:
         return (-b2 + F32(np.sqrt(disc))) / (F32(2) * a2 + F32(1e-8)), disc
 
     def _general(self, a: Cuboid, q1: np.ndarray, g: np.ndarray) -> None:
-        """Unaligned mover with two or more records: orient if colinear, then maybe scale (3.2.3)."""
+        """Unaligned mover with two or more records: orient if colinear, then maybe scale ("General attach")."""
         recs = a.records
         colinear = len(recs) == 2 or all(
             _norm(_cross(recs[i][1] - recs[0][1], recs[1][1] - recs[0][1])) <= EPS for i in range(2, len(recs)))
@@ -395,7 +397,7 @@ class BlockState:
 
 
 def _place(c: Cuboid, p_pos, p_axes, scale) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Map a cuboid from its block frame into the placement's frame (spec section 4 step 3)."""
+    """Map a cuboid from its block frame into the placement's frame (docs/shapeassembly.md, "Sub-assemblies")."""
     return c.pos @ p_axes + p_pos, (c.axes @ p_axes).astype(F32), (c.dims * scale).astype(F32)
 
 
@@ -441,6 +443,6 @@ def execute_program(program: Program, copy_names=None, nearest=None) -> np.ndarr
 
 def run_text(text: str, nearest=None) -> np.ndarray:
     """Parse and execute full-language text -> (n, 15) float32 cuboids."""
-    from plad.domains.shapeassembly.lang import parse_program
+    from plad.datasets.partnet.lang import parse_program
 
     return execute_program(parse_program(text), nearest=nearest)

@@ -1,4 +1,4 @@
-"""Voxelization of oriented cuboids at 32^3 (spec section 5).
+"""Voxelization of oriented cuboids at 32^3 (docs/shapeassembly.md, "Voxelizing a real shape").
 
 Grid: voxel (i, j, k) has center ``((i+.5)/32 - .5, (j+.5)/32 - .5, (k+.5)/32 - .5)``
 for (x, y, z), arrays are indexed [x, y, z], y is up. A voxel is occupied iff

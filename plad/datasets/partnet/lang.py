@@ -1,6 +1,6 @@
 """ShapeAssembly program text: the full hierarchical language -> checked statements.
 
-The language is specified in ``../shared/specs/shapeassembly.md`` (section 1).
+The language is described in ``docs/shapeassembly.md`` ("Program text").
 A program is a sequence of ``Assembly NAME { ... }`` blocks; the first is the
 root, the others are sub-assemblies declared by a ``Program_K = Cuboid(...)``
 line of their parent. Block lines are ``Cuboid``, ``attach``, ``squeeze``,

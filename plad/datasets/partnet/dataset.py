@@ -1,8 +1,8 @@
-"""The real ShapeAssembly/3D target shapes: PartNet-derived programs, executed and voxelized.
+"""The PartNet target shapes: PartNet-derived ShapeAssembly programs, executed and voxelized at 32^3.
 
 Source: ``partnet_programs.tar.gz`` (``programs/{chair,table,storage}/<id>.txt``
-and ``splits/<category>/{train,val}.txt``; see ``../shared/datasets/README.md``).
-Split rule of that README: train = the official train ids of all three
+and ``splits/<category>/{train,val}.txt``; see docs/conventions.md, "The data directory and the real datasets").
+Split rule: train = the official train ids of all three
 categories; the official val ids, sorted by (category, numeric id),
 alternate val (even positions) / test (odd positions).
 
@@ -17,23 +17,31 @@ category, then numeric id:
 * ``ids``: str (N,) program ids; ``categories``: str (N,) chair/table/storage;
   ``split``: str (N,) train/val/test;
 * ``norm_center`` float64 (N, 3), ``norm_scale`` float64 (N,): the tight-bounds
-  normalization applied before voxelizing (spec section 5);
+  normalization applied before voxelizing (docs/shapeassembly.md);
 * ``n_cuboids`` int64 (N,);
 * ``format_version`` int (1) and ``voxel_convention`` str.
 
-Voxels follow spec section 5 (see :mod:`plad.domains.shapeassembly.voxels`).
+Voxels follow docs/shapeassembly.md, "Voxelizing a real shape" (see :mod:`plad.datasets.partnet.voxels`).
+
+:data:`TARGETS` is the target source of the 3D domains: the ``prepare``
+stage builds the file once (:meth:`PartNetTargets.prepare`), with a report
+``partnet_voxels.json`` and ``partnet_failures.log`` beside it.
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import tarfile
+import time
 from pathlib import Path
 
 import numpy as np
 
-from plad.domains.shapeassembly.execute import run_text
-from plad.domains.shapeassembly.voxels import RES, normalization, voxelize
+from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir
+from plad.datasets.partnet.execute import run_text
+from plad.datasets.partnet.voxels import RES, normalization, voxelize
+from plad.fsutil import atomic_write_text
 from plad.grammar import ProgramError
 
 log = logging.getLogger(__name__)
@@ -42,8 +50,9 @@ FORMAT_VERSION = 1
 PREPARED_NAME = "partnet_voxels.npz"
 SOURCE_NAME = "partnet_programs.tar.gz"
 FOLDER = "shapeassembly_partnet"
+REPORT_NAME = "partnet_voxels.json"
+FAILURES_NAME = "partnet_failures.log"
 CATEGORIES = ("chair", "table", "storage")
-SPLITS = ("train", "val", "test")
 CONVENTION = ("tight AABB of all cuboid corners; p_norm = (p - center) / scale; voxel (i,j,k) center "
               "((i+.5)/32-.5, (j+.5)/32-.5, (k+.5)/32-.5) indexed [x,y,z]; occupied iff "
               "|(c-p).u_a| <= max(|d_a|/2, 0.55/32) + 1e-6 for a = x, y, z for some cuboid")
@@ -137,7 +146,7 @@ def build_partnet_dataset(tar_path: str | os.PathLike, out_path: str | os.PathLi
     np.savez_compressed(tmp, **arrays)
     os.replace(tmp, out_path)
     for name, reason in failures:
-        log.warning("shapeassembly dataset: %s failed: %s", name, reason)
+        log.warning("PartNet dataset: %s failed: %s", name, reason)
     counts = {s: {c: int(((arrays["split"] == s) & (arrays["categories"] == c)).sum()) for c in CATEGORIES}
               for s in SPLITS}
     listed = {s: sum(1 for r in assignment if r[0] == s) for s in SPLITS}
@@ -161,8 +170,6 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
     executes that split's programs directly (a few seconds for val/test,
     about 20 s for train) and caches the result for the process.
     """
-    from plad.data import DataError, resolve_data_dir
-
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
     root = resolve_data_dir(data_dir)
@@ -176,7 +183,7 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
                     rows = z["split"] == split
                     return unpack(z["voxels"][rows])
             except (OSError, KeyError, ValueError) as err:
-                raise DataError(path, f"not a readable prepared ShapeAssembly dataset ({err})") from None
+                raise DataError(path, f"not a readable prepared PartNet dataset ({err})") from None
     for rel in (SOURCE_NAME, f"{FOLDER}/{SOURCE_NAME}"):
         path = root / rel
         if path.is_file():
@@ -186,10 +193,59 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
                 programs, assignment = read_source(path)
                 arrays, failures = execute_records(programs, [r for r in assignment if r[0] == split])
                 for name, reason in failures:
-                    log.warning("shapeassembly dataset: %s failed: %s", name, reason)
+                    log.warning("PartNet dataset: %s failed: %s", name, reason)
                 _SPLIT_CACHE[key] = unpack(arrays["voxels"])
             return _SPLIT_CACHE[key]
-    raise DataError(root.absolute(), f"ShapeAssembly target shapes not found (looked for {PREPARED_NAME} and "
+    raise DataError(root.absolute(), f"PartNet target shapes not found (looked for {PREPARED_NAME} and "
                                      f"{SOURCE_NAME}, also under {FOLDER}/); the prepared file is built by the "
-                                     f"dataset stage (build_partnet_dataset), or point the data directory at "
+                                     f"prepare stage (build_partnet_dataset), or point the data directory at "
                                      f"the folder holding {SOURCE_NAME}")
+
+
+def find_source(data_dir: str | os.PathLike | None) -> Path:
+    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder)."""
+    root = resolve_data_dir(data_dir)
+    for path in (root / FOLDER / SOURCE_NAME, root / SOURCE_NAME):
+        if path.is_file():
+            return path
+    raise DataError(root / FOLDER / SOURCE_NAME, "no such file: the PartNet ShapeAssembly programs are needed "
+                                                 "for the 3D target shapes (see the datasets README)")
+
+
+class PartNetTargets(TargetSource):
+    """The PartNet shapes: read from the prepared file, or built from the programs by the ``prepare`` stage."""
+
+    name = "partnet"
+
+    def load(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
+        return load_split(split, data_dir)
+
+    def prepare(self, data_dir: str | os.PathLike | None, out_dir: str | os.PathLike,
+                limit: int | None = None) -> PreparedTargets:
+        """Execute and voxelize every program (``limit``: the first N of each split).
+
+        Writes ``<out_dir>/partnet_voxels.npz``, its report ``partnet_voxels.json``
+        and ``partnet_failures.log``: a program that fails to execute is listed
+        there with its id and reason, never silently dropped.
+        """
+        source = find_source(data_dir)
+        out = Path(out_dir)
+        start = time.monotonic()
+        try:
+            report = build_partnet_dataset(source, out / PREPARED_NAME, limit=limit)
+        except (tarfile.TarError, EOFError, OSError) as err:
+            raise DataError(source, f"not a readable .tar.gz ({err.__class__.__name__}: {err})") from None
+        report["seconds"] = round(time.monotonic() - start, 1)
+        report["source"] = str(source)
+        atomic_write_text(out / REPORT_NAME, json.dumps(report, indent=2) + "\n")
+        atomic_write_text(out / FAILURES_NAME, "".join(f"{f['program']}\t{f['reason']}\n" for f in report["failures"]))
+        with np.load(out / PREPARED_NAME) as z:
+            split = z["split"]
+            splits = {s: unpack(z["voxels"][split == s]) for s in SPLITS}
+        return PreparedTargets(splits, provenance={"source": PREPARED_NAME},
+                               report={k: report[k] for k in ("shapes", "listed", "seconds")}
+                               | {"failures": len(report["failures"])})
+
+
+#: the target source of the domains whose real shapes are the PartNet shapes
+TARGETS = PartNetTargets()

@@ -1,0 +1,51 @@
+"""MLflow tracking: every pipeline stage execution is one MLflow run; the registry; pyfunc serving.
+
+The only package that talks to MLflow (``mlflow`` itself is imported lazily,
+so ``import plad.tracking`` stays cheap):
+
+* :mod:`plad.tracking.store`: where the store is (``$MLFLOW_TRACKING_URI`` or
+  ``./mlflow.db``) and the experiment;
+* :mod:`plad.tracking.runs`: :class:`StageRun`, one run per stage execution
+  (resumable, nested child runs per round), and reading finished runs back;
+* :mod:`plad.tracking.registry`: champions, version tags, model URIs
+  resolved to checkpoint files;
+* :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model
+  (:class:`PladPyfuncModel`), logged and loaded.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from plad.tracking.registry import (
+    download_checkpoint,
+    is_model_uri,
+    registered_models,
+    set_champion,
+    set_version_tags,
+)
+from plad.tracking.runs import (
+    RUN_FILE,
+    ChildRun,
+    RunRecord,
+    StageRun,
+    flatten_params,
+    latest_finished_run,
+    metric_history,
+    pipeline_tags,
+)
+from plad.tracking.serving import load_registered, pip_requirements, pyfunc_class
+from plad.tracking.store import DEFAULT_EXPERIMENT, find_experiment, tracking_uri
+
+
+def __getattr__(name: str) -> Any:
+    # ``plad.tracking.PladPyfuncModel`` is built on first access (it subclasses an
+    # mlflow class), which is also how a pickled instance finds it when loaded.
+    if name == "PladPyfuncModel":
+        return pyfunc_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun",
+           "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri", "latest_finished_run",
+           "load_registered", "metric_history", "pip_requirements", "pipeline_tags", "registered_models",
+           "set_champion", "set_version_tags", "tracking_uri"]

@@ -1,0 +1,389 @@
+"""One MLflow run per pipeline stage execution (:class:`StageRun`), and reading runs back.
+
+Runs of one ``dvc repro`` share the tag ``plad.pipeline`` (see
+:func:`pipeline_tags`) so that they can be compared with
+``mlflow.search_runs(filter_string="tags.`plad.pipeline` = '...'")``.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import subprocess
+import warnings
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from plad.fsutil import atomic_write_text
+from plad.tracking.serving import log_pyfunc
+from plad.tracking.store import (
+    DEFAULT_EXPERIMENT,
+    MAX_KEY_LENGTH,
+    MAX_PARAM_VAL_LENGTH,
+    MAX_TAG_VAL_LENGTH,
+    client,
+    ensure_experiment,
+    mlflow_module,
+    tracking_uri,
+)
+
+RUN_FILE = "mlflow_run.json"
+_PARAMS_PER_BATCH = 100
+
+
+# -- how runs are grouped -------------------------------------------------------------------
+def _git_rev(cwd: Path) -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True,
+                             text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "nogit"
+    rev = out.stdout.strip()
+    return rev if out.returncode == 0 and rev else "nogit"
+
+
+def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, str]:
+    """Tags shared by the runs of one ``dvc repro``.
+
+    ``plad.pipeline``: short hash of the params file bytes and the git revision
+    (HEAD of the repository holding the params file, or ``nogit``), or
+    ``$PLAD_PIPELINE_ID`` when set; ``plad.git_rev``; ``plad.profile``: the
+    params file's top-level ``profile`` value, else ``custom``.
+    """
+    path = Path(params_path)
+    data = path.read_bytes() if path.is_file() else b""
+    rev = _git_rev(path.resolve().parent if path.parent.is_dir() else Path.cwd())
+    pipeline = os.environ.get("PLAD_PIPELINE_ID") or \
+        hashlib.sha256(data + b"\0" + rev.encode()).hexdigest()[:12]
+    profile = "custom"
+    if data:
+        try:
+            parsed = yaml.safe_load(data)
+        except Exception:  # a broken params file is the config loader's error to report
+            parsed = None
+        if isinstance(parsed, dict) and parsed.get("profile") is not None:
+            profile = str(parsed["profile"])
+    return {"plad.pipeline": pipeline, "plad.git_rev": rev, "plad.profile": profile}
+
+
+# -- params ---------------------------------------------------------------------------------
+def flatten_params(params: Mapping[str, Any] | Any, prefix: str = "") -> dict[str, str]:
+    """Nested dicts (or dataclasses) -> ``{"a.b.c": "value"}`` with MLflow-safe strings.
+
+    Lists and tuples are stringified; values are truncated to MLflow's limit.
+    """
+    if dataclasses.is_dataclass(params) and not isinstance(params, type):
+        params = dataclasses.asdict(params)
+    out: dict[str, str] = {}
+    for key, value in dict(params).items():
+        name = f"{prefix}{key}"
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            value = dataclasses.asdict(value)
+        if isinstance(value, Mapping) and value:
+            out.update(flatten_params(value, prefix=name + "."))
+            continue
+        if isinstance(value, (list, tuple)):
+            text = json.dumps(list(value), default=str)
+        elif isinstance(value, Mapping):
+            text = "{}"
+        else:
+            text = str(value)
+        out[name[:MAX_KEY_LENGTH]] = text[:MAX_PARAM_VAL_LENGTH]
+    return out
+
+
+def _params_hash(flat: Mapping[str, str]) -> str:
+    return hashlib.sha256(json.dumps(flat, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _tag_values(tags: Mapping[str, Any]) -> dict[str, str]:
+    return {str(k)[:MAX_KEY_LENGTH]: str(v)[:MAX_TAG_VAL_LENGTH] for k, v in tags.items()}
+
+
+# -- logging to a run by id -------------------------------------------------------------------
+def _tag_entities(tags: Mapping[str, Any]) -> list[Any]:
+    from mlflow.entities import RunTag
+
+    return [RunTag(k, v) for k, v in _tag_values(tags).items()]
+
+
+def _log_metrics(run_id: str, metrics: Mapping[str, float], step: int | None) -> None:
+    if metrics:
+        mlflow_module().log_metrics({str(k): float(v) for k, v in metrics.items()}, step=step,
+                                    run_id=run_id, synchronous=True)
+
+
+def _log_params(run_id: str, flat: Mapping[str, str]) -> None:
+    from mlflow.entities import Param
+
+    mlflow_client = client()
+    items = list(flat.items())
+    for i in range(0, len(items), _PARAMS_PER_BATCH):
+        mlflow_client.log_batch(run_id, params=[Param(k, v) for k, v in items[i:i + _PARAMS_PER_BATCH]])
+
+
+def _set_tags(run_id: str, tags: Mapping[str, Any]) -> None:
+    client().log_batch(run_id, tags=_tag_entities(tags))
+
+
+class ChildRun:
+    """Handle of a nested run opened by :meth:`StageRun.nested`."""
+
+    def __init__(self, run_id: str):
+        self.run_id = run_id
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
+        _log_metrics(self.run_id, metrics, step)
+
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        _log_params(self.run_id, flatten_params(params))
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        _set_tags(self.run_id, tags)
+
+
+# -- one stage execution ------------------------------------------------------------------------
+class StageRun:
+    """Context manager: one MLflow run per stage execution, resumable after a kill.
+
+    Usage in a stage::
+
+        with StageRun("pretrain", domain, params, run_dir) as run:
+            for step, loss in ...:
+                run.log_metrics({"loss": loss}, step=step)
+            for r in range(rounds):
+                with run.nested(f"round_{r}", round=r):
+                    run.log_metrics({"val_iou": v}, step=r)     # goes to the child run
+            run.log_artifact(metrics_json)
+            run.log_model(checkpoint, registered_name=f"plad-{domain}")
+
+    The run id is kept in ``run_dir/mlflow_run.json``. Entering again with the
+    same ``run_dir`` resumes that run if it is not FINISHED (a killed training
+    re-run continues its run) and was started with the same params, store and
+    experiment; otherwise a new run starts. Params are logged only for a new run.
+    Exiting ends the run FINISHED, or FAILED (KILLED for KeyboardInterrupt) when
+    an exception escapes; exceptions always propagate.
+    """
+
+    def __init__(self, stage: str, domain: str, params: Mapping[str, Any] | Any,
+                 run_dir: str | os.PathLike, *, method: str | None = None,
+                 tags: Mapping[str, Any] | None = None, experiment: str = DEFAULT_EXPERIMENT,
+                 params_path: str | os.PathLike = "params.yaml"):
+        self.stage = stage
+        self.domain = domain
+        self.method = method
+        self.params = flatten_params(params if params is not None else {})
+        self.run_dir = Path(run_dir)
+        self.extra_tags = dict(tags or {})
+        self.experiment = experiment
+        self.params_path = params_path
+        self.resumed = False
+        self._run_id: str | None = None
+        self._exp_id: str | None = None
+        self._tags: dict[str, str] | None = None
+        self._stack: list[str] = []          # open runs, innermost last
+
+    # -- state -------------------------------------------------------------------------
+    @property
+    def run_id(self) -> str:
+        if self._run_id is None:
+            raise RuntimeError("StageRun.run_id is only known once the run has started")
+        return self._run_id
+
+    @property
+    def run_file(self) -> Path:
+        return self.run_dir / RUN_FILE
+
+    @property
+    def tags(self) -> dict[str, str]:
+        tags: dict[str, Any] = {"plad.stage": self.stage, "plad.domain": self.domain}
+        if self.method:
+            tags["plad.method"] = self.method
+        tags.update(pipeline_tags(self.params_path))
+        tags.update(self.extra_tags)
+        return _tag_values(tags)
+
+    def _resumable(self, mlflow_client: Any, uri: str, experiment_id: str) -> str | None:
+        try:
+            record = json.loads(self.run_file.read_text())
+            run_id = record["run_id"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if (record.get("tracking_uri"), record.get("experiment_id"), record.get("params_hash")) != \
+                (uri, experiment_id, _params_hash(self.params)):
+            return None
+        try:
+            run = mlflow_client.get_run(run_id)
+        except Exception:  # unknown run (store reset): start afresh
+            return None
+        info = run.info
+        if info.status == "FINISHED" or info.lifecycle_stage != "active" \
+                or info.experiment_id != experiment_id:
+            return None
+        return run_id
+
+    # -- context manager --------------------------------------------------------------------
+    def __enter__(self) -> StageRun:
+        mlflow = mlflow_module()
+        uri = tracking_uri()
+        mlflow_client = mlflow.MlflowClient()
+        experiment_id = self._exp_id = ensure_experiment(mlflow_client, uri, self.experiment)
+        tags = self._tags = self.tags
+        previous = self._resumable(mlflow_client, uri, experiment_id)
+        nested = mlflow.active_run() is not None   # e.g. a flow's own run around the stage
+        if previous is not None:
+            active = mlflow.start_run(run_id=previous, nested=nested)
+            self.resumed = True
+            mlflow_client.log_batch(previous, tags=_tag_entities(tags))
+        else:
+            name = "/".join(x for x in (self.stage, self.method, self.domain) if x)
+            active = mlflow.start_run(experiment_id=experiment_id, run_name=name,
+                                      nested=nested, tags=tags)
+            self.resumed = False
+        self._run_id = active.info.run_id
+        self._stack = [self._run_id]
+        try:
+            if not self.resumed:
+                _log_params(self._run_id, self.params)
+            atomic_write_text(self.run_file, json.dumps({
+                "run_id": self._run_id, "experiment_id": experiment_id, "tracking_uri": uri,
+                "params_hash": _params_hash(self.params), "stage": self.stage,
+                "domain": self.domain, "method": self.method,
+            }, indent=2) + "\n")
+        except BaseException:
+            self._end(mlflow, "FAILED")
+            raise
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            status = "FINISHED"
+        elif issubclass(exc_type, KeyboardInterrupt):
+            status = "KILLED"
+        else:
+            status = "FAILED"
+        try:
+            self._end(mlflow_module(), status)
+        except Exception:
+            if exc_type is None:
+                raise
+            warnings.warn(f"could not end MLflow run {self._run_id} as {status}", stacklevel=2)
+        return False  # never swallow the exception
+
+    def _end(self, mlflow: Any, status: str) -> None:
+        # close anything left open above our run (a leaked child), then our run
+        while True:
+            active = mlflow.active_run()
+            if active is None:
+                break
+            mlflow.end_run(status)
+            if active.info.run_id == self._run_id:
+                break
+        self._stack = []
+
+    # -- logging ---------------------------------------------------------------------------
+    def _current(self) -> str:
+        if not self._stack:
+            raise RuntimeError("StageRun is not active (use it as a context manager)")
+        return self._stack[-1]
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
+        """Log to the innermost open run: the stage run, or the child inside :meth:`nested`."""
+        _log_metrics(self._current(), metrics, step)
+
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        """Extra params on the innermost open run (MLflow params cannot change once logged)."""
+        _log_params(self._current(), flatten_params(params))
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        _set_tags(self._current(), tags)
+
+    def log_artifact(self, path: str | os.PathLike, artifact_path: str | None = None) -> None:
+        """A file (or a whole directory) as artifact(s) of the innermost open run."""
+        mlflow_client = client()
+        path = Path(path)
+        if path.is_dir():
+            mlflow_client.log_artifacts(self._current(), str(path), artifact_path)
+        else:
+            mlflow_client.log_artifact(self._current(), str(path), artifact_path)
+
+    @contextlib.contextmanager
+    def nested(self, name: str, **tags: Any) -> Iterator[ChildRun]:
+        """A child run (``mlflow.parentRunId`` = the stage run); metrics logged inside go to it.
+
+        Keyword tags without a dot get the ``plad.`` prefix: ``nested("round_3", round=3)``
+        tags the child ``plad.round=3``. The child also carries the stage's
+        ``plad.stage/domain/method/pipeline`` tags, so it is found by the same filters.
+        """
+        mlflow = mlflow_module()
+        self._current()
+        base = {k: v for k, v in (self._tags or self.tags).items()
+                if k in ("plad.stage", "plad.domain", "plad.method", "plad.pipeline")}
+        extra = {(k if "." in k else f"plad.{k}"): v for k, v in tags.items()}
+        # children live in the stage run's experiment (not the fluent API's default one)
+        child = mlflow.start_run(nested=True, run_name=name, experiment_id=self._exp_id,
+                                 tags=_tag_values({**base, **extra}))
+        child_id = child.info.run_id
+        self._stack.append(child_id)
+        status = "FAILED"
+        try:
+            yield ChildRun(child_id)
+            status = "FINISHED"
+        except KeyboardInterrupt:
+            status = "KILLED"
+            raise
+        finally:
+            if self._stack and self._stack[-1] == child_id:
+                self._stack.pop()
+            active = mlflow.active_run()
+            if active is not None and active.info.run_id == child_id:
+                mlflow.end_run(status)
+            else:
+                mlflow.MlflowClient().set_terminated(child_id, status)
+
+    # -- models -----------------------------------------------------------------------------
+    def log_model(self, checkpoint_path: str | os.PathLike, *, registered_name: str | None = None,
+                  beam: int = 10) -> str:
+        """Log the checkpoint as a pyfunc model (artifact path ``model``) of the innermost run.
+
+        Returns ``models:/<name>/<version>`` when ``registered_name`` is given
+        (the model is registered under it), else the logged model's URI.
+        """
+        current = self._current()
+        active = mlflow_module().active_run()
+        if active is None or active.info.run_id != current:
+            raise RuntimeError("log_model must be called from the thread that entered the StageRun")
+        checkpoint_path = Path(checkpoint_path)
+        if not checkpoint_path.is_file():
+            raise FileNotFoundError(f"{checkpoint_path}: no such checkpoint")
+        return log_pyfunc(checkpoint_path, registered_name=registered_name, beam=beam)
+
+
+# -- reading runs back ------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class RunRecord:
+    """What a finished run left: its id, last metric values and tags."""
+    run_id: str
+    metrics: dict[str, float]
+    tags: dict[str, str]
+
+
+def latest_finished_run(experiment_id: str, tags: Mapping[str, str]) -> RunRecord | None:
+    """The FINISHED run of the experiment with all these tag values that ended last, or ``None``."""
+    where = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())
+    runs = client().search_runs([experiment_id], f"{where} and attributes.status = 'FINISHED'",
+                                order_by=["attributes.end_time DESC"], max_results=1)
+    if not runs:
+        return None
+    run = runs[0]
+    return RunRecord(run.info.run_id, dict(run.data.metrics), dict(run.data.tags))
+
+
+def metric_history(run_id: str, key: str) -> list[tuple[int, float]]:
+    """Every logged (step, value) of one metric of a run, in the store's order."""
+    return [(m.step, m.value) for m in client().get_metric_history(run_id, key)]

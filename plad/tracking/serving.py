@@ -1,0 +1,152 @@
+"""A PLAD checkpoint as an MLflow pyfunc model: shapes in, programs out.
+
+:func:`log_pyfunc` logs a checkpoint as a model of the active run (and
+registers it); :func:`load_registered` loads one back. The wrapper class
+:class:`PladPyfuncModel` subclasses an ``mlflow`` class, so it is built on
+first access, and its methods import torch and the model code only then:
+``import plad.tracking`` stays cheap (``plad models`` lists the registry
+without them). Its public name is ``plad.tracking.PladPyfuncModel``, which is
+how a pickled instance finds it when a logged model is loaded.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plad import __version__
+from plad.tracking.store import mlflow_module
+
+#: the module that serves the wrapper class by name (see plad/tracking/__init__.py)
+PUBLIC_MODULE = "plad.tracking"
+
+
+def pip_requirements() -> list[str]:
+    """Requirements of the logged pyfunc model (no environment capture: offline-safe)."""
+    return ["torch", "numpy", "pandas", f"plad=={__version__}"]
+
+
+def log_pyfunc(checkpoint_path: str | os.PathLike, *, registered_name: str | None = None,
+               beam: int = 10) -> str:
+    """Log a checkpoint as a pyfunc model (artifact path ``model``) of the active run.
+
+    Returns ``models:/<name>/<version>`` when ``registered_name`` is given
+    (the model is registered under it), else the logged model's URI.
+    """
+    mlflow = mlflow_module()
+    from mlflow.models import ModelSignature
+    from mlflow.types import ParamSchema, ParamSpec
+
+    # a params-only signature: without it MLflow drops predict(params=...) with a warning
+    signature = ModelSignature(inputs=None, outputs=None,
+                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*input example.*")
+        info = mlflow.pyfunc.log_model(
+            name="model",
+            python_model=pyfunc_class()(beam=beam),
+            artifacts={"checkpoint": str(Path(checkpoint_path))},
+            pip_requirements=pip_requirements(),
+            signature=signature,
+            registered_model_name=registered_name,
+        )
+    if registered_name:
+        return f"models:/{registered_name}/{info.registered_model_version}"
+    return info.model_uri
+
+
+def load_registered(uri: str) -> Any:
+    """The pyfunc model at ``uri`` (``models:/name@champion``, ``models:/name/3``, ...)."""
+    return mlflow_module().pyfunc.load_model(uri)
+
+
+# -- the pyfunc wrapper ---------------------------------------------------------------------------
+def _stack_input(model_input: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """(N, *shape) bool numpy array from an ndarray, a list of arrays or a DataFrame."""
+    if hasattr(model_input, "columns") and hasattr(model_input, "to_numpy"):   # DataFrame
+        frame = model_input
+        if frame.shape[1] == 1:
+            cells = list(frame.iloc[:, 0])
+            model_input = np.stack([np.asarray(c) for c in cells]) if cells else \
+                np.zeros((0, *shape), bool)
+        else:  # one flattened shape per row
+            model_input = frame.to_numpy().reshape(len(frame), *shape)
+    elif isinstance(model_input, dict) and len(model_input) == 1:
+        model_input = next(iter(model_input.values()))
+    arr = np.asarray(model_input)
+    if arr.dtype == object:
+        arr = np.stack([np.asarray(a) for a in arr])
+    if arr.shape == tuple(shape):
+        arr = arr[None]
+    if arr.shape[1:] != tuple(shape):
+        raise ValueError(f"expected shapes of size {tuple(shape)}, got an array of shape {arr.shape}")
+    return arr.astype(bool)
+
+
+def _build_pyfunc_class() -> type:
+    # mlflow, and the modules that pull in torch: imported when the class is first needed
+    import mlflow.pyfunc
+    import pandas as pd
+    import torch
+
+    from plad.checkpoint import load_model
+    from plad.domains import get_domain
+    from plad.search import infer_programs
+
+    def load_context(self, context):
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.model, name = load_model(context.artifacts["checkpoint"], device)
+        self.domain = get_domain(name)
+
+    def predict(self, context, model_input, params=None):
+        beam = int((params or {}).get("beam") or self.beam)
+        arr = _stack_input(model_input, tuple(self.domain.shape))
+        device = next(self.model.parameters()).device
+        programs: list[str] = []
+        values: list[float] = []
+        for i in range(0, len(arr), self.batch_size):
+            targets = torch.from_numpy(arr[i:i + self.batch_size]).to(device)
+            result = infer_programs(self.model, self.domain, targets, beam)
+            programs += [self.domain.format(p) for p in result.programs]
+            values += result.values.double().cpu().tolist()
+        return pd.DataFrame({"program": programs, self.domain.metric.name: values})
+
+    # An ndarray hint tells MLflow not to infer a schema from the hints (the input is
+    # passed through untouched; DataFrames work too). Without any hint MLflow warns
+    # at class creation, from inside its own ``simplefilter("once")``: unfilterable.
+    predict.__annotations__ = {"model_input": np.ndarray}
+
+    def __init__(self, beam: int = 10):
+        self.beam = int(beam)
+        self.model = None
+        self.domain = None
+
+    namespace = {
+        "__module__": PUBLIC_MODULE,
+        "__qualname__": "PladPyfuncModel",
+        "__doc__": """Shapes in, programs out: best-of-beam inference with a PLAD checkpoint.
+
+        ``predict(context, model_input, params=None)``: ``model_input`` is a
+        bool/uint8 array (N, *shape) (or a one-column DataFrame of such
+        arrays); returns a DataFrame with columns ``program`` (text) and the
+        domain metric's name. ``params={"beam": k}`` overrides the beam width.
+        """,
+        "batch_size": 64,
+        "__init__": __init__,
+        "load_context": load_context,
+        "predict": predict,
+    }
+    return type("PladPyfuncModel", (mlflow.pyfunc.PythonModel,), namespace)
+
+
+_PYFUNC_CLASS: list[type] = []   # built once
+
+
+def pyfunc_class() -> type:
+    """The ``PladPyfuncModel`` class (built on first call)."""
+    if not _PYFUNC_CLASS:
+        _PYFUNC_CLASS.append(_build_pyfunc_class())
+    return _PYFUNC_CLASS[0]
