@@ -62,7 +62,7 @@ def _infer_shard(model, domain_name: str, shapes: np.ndarray, beam: int, batch: 
 
 
 def sharded_infer(domain_name: str, beam: int, batch: int, cfg: FlowsConfig):
-    """An ``Infer`` for :func:`plad.finetune.finetune` that maps shards of the shapes over tasks."""
+    """An ``Infer`` for :func:`plad.rounds.run_rounds` that maps shards of the shapes over tasks."""
     shard_task = task(_infer_shard, name="infer shard", retries=cfg.retries,
                       retry_delay_seconds=cfg.retry_delay_seconds, cache_policy=NONE)
 

@@ -28,6 +28,16 @@ Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]   # shapes (N, *s), prog
 Source = Callable[[np.random.Generator, int], Batch]
 
 
+@dataclass
+class MethodConfig:
+    """One fine-tuning method of the comparison (params ``finetune.<domain>.methods.<key>``)."""
+
+    #: "rl" or a PLAD mixture of st / lest / ws, e.g. "lest+st"
+    method: str = "lest+st"
+    #: P_BEST mode of PLAD methods: all-time (the paper's) or per-round (the supplement's ablation); its one home
+    pbest_mode: str = "all-time"
+
+
 @dataclass(frozen=True)
 class Mixture:
     names: tuple[str, ...]
@@ -82,7 +92,7 @@ def lest_source(pbest: PBest, device: torch.device) -> Source:
 
 def mixture_batches(mixture: Mixture, sources: dict[str, Source], batch_size: int,
                     seed: int) -> Callable[[int], Iterator[Batch]]:
-    """``batches(epoch)`` for :func:`plad.train.fit`: each batch whole from one source, by weight."""
+    """``batches(epoch)`` (from 0) for :func:`plad.train.fit`: each batch whole from one source, by weight."""
     missing = [n for n in mixture.names if n not in sources]
     if missing:
         raise ValueError(f"no data for source(s) {', '.join(missing)}")

@@ -26,12 +26,14 @@ from torch import nn
 
 
 @dataclass
-class ModelConfig:
-    """Architecture of :class:`PLADNet`. Stored in every checkpoint."""
+class Architecture:
+    """The architecture knobs of :class:`PLADNet`: the params section ``pretrain.<domain>.model``.
 
-    vocab_size: int                    # number of domain tokens (output classes)
-    max_len: int                       # program length cap (tokens, stop included)
-    input_shape: tuple[int, ...]       # (64, 64) or (32, 32, 32)
+    The one home of these knobs and their defaults; the sizes that come from
+    the domain (vocabulary, length cap, input shape) are added by
+    :class:`ModelConfig`.
+    """
+
     d_model: int = 256
     n_layers: int = 4
     n_heads: int = 8
@@ -47,12 +49,34 @@ class ModelConfig:
     enc_kernel: int | None = None
 
     def __post_init__(self) -> None:
-        self.input_shape = tuple(self.input_shape)
         self.enc_channels = tuple(self.enc_channels)
         if self.d_model % self.n_heads:
             raise ValueError(f"d_model {self.d_model} must be divisible by n_heads {self.n_heads}")
+
+
+@dataclass(kw_only=True)
+class ModelConfig(Architecture):
+    """Everything :class:`PLADNet` is built from: the architecture plus the domain's sizes. Stored in every checkpoint.
+
+    A flat dict (``to_dict``), the same keys as before the architecture had its
+    own class, so that every checkpoint loads with ``ModelConfig(**config)``.
+    """
+
+    vocab_size: int                    # number of domain tokens (output classes)
+    max_len: int                       # program length cap (tokens, stop included)
+    input_shape: tuple[int, ...]       # (64, 64) or (32, 32, 32)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.input_shape = tuple(self.input_shape)
         if len(self.input_shape) not in (2, 3):
             raise ValueError(f"input shape {self.input_shape}: only 2D and 3D shapes are supported")
+
+    @classmethod
+    def for_domain(cls, arch: Architecture, domain) -> ModelConfig:
+        """The network for ``domain`` (a :class:`plad.domains.base.Domain`) with architecture ``arch``."""
+        return cls(**asdict(arch), vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
+                   input_shape=domain.shape)
 
     @property
     def bos(self) -> int:
@@ -249,4 +273,4 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-__all__ = ["ModelConfig", "PLADNet", "count_parameters", "reorder_caches"]
+__all__ = ["Architecture", "ModelConfig", "PLADNet", "count_parameters", "reorder_caches"]

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
+from plad.loop import read_state, upgrade_summary
 from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
 LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
@@ -48,16 +49,13 @@ def from_files(domain: str, keys: list[str], results_dir: str | Path, finetune_d
         test = json.loads(metrics.read_text())["test"]["mean"] if metrics.exists() else None
         res = MethodResult(key, test)
         state_file = Path(finetune_dir) / domain / key / "state.json"
-        if state_file.exists():
-            state = json.loads(state_file.read_text())
-            res.curve = [(float(r["seconds"]), float(next(v for k, v in r.items() if k.startswith("val_"))))
-                         for r in state["history"]]
+        if state_file.exists():   # read_state/upgrade_summary also read the files of older versions
+            res.curve = [(float(r["seconds"]), float(r["val"])) for r in read_state(state_file).history]
         summary = Path(results_dir) / "finetune" / domain / f"{key}.json"
         if summary.exists():
-            s = json.loads(summary.read_text())
+            s = upgrade_summary(json.loads(summary.read_text()))
             res.stopped, res.train_seconds = s.get("stopped"), s.get("train_seconds")
-            res.rounds = s.get("rounds", s.get("epochs"))
-            res.val_best = s.get(f"val_{s.get('metric')}")
+            res.rounds, res.val_best = s.get("units"), s.get("val")
         out.append(res)
     return out
 
@@ -80,9 +78,10 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
             res.curve = sorted((float(step), float(value)) for step, value in history)
             m = ft.metrics
             res.train_seconds = m.get("train_seconds")
-            res.rounds = int(m["rounds"]) if "rounds" in m else (int(m["epochs"]) if "epochs" in m else None)
+            m = upgrade_summary({**m, "metric": metric})   # runs logged by older versions
+            res.rounds = int(m["units"]) if "units" in m else None
             res.stopped = ft.tags.get("plad.stopped")
-            res.val_best = m.get(f"val_{metric}")
+            res.val_best = m.get("val")
         out.append(res)
     return out
 

@@ -10,19 +10,18 @@ distance (the 2D Chamfer distance) becomes CSGNet's
 """
 from __future__ import annotations
 
-import json
-import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
-from plad.fsutil import atomic_write_text
+from plad.job import Job
+from plad.loop import JsonStore, Limits, Loop, Unit
 from plad.model import PLADNet
 from plad.sampling import NEG, ancestral_sample
 
@@ -116,10 +115,8 @@ class Reinforce:
                 f"train_{domain.metric.name}": float(values.mean())}
 
 
-def rl_finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shapes: np.ndarray,
-                cfg: RLConfig, out_dir: str | Path, *, max_minutes: float | None = None, seed: int = 0,
-                on_epoch: Callable[[int, dict[str, float]], None] | None = None) -> dict:
-    """REINFORCE fine-tuning on the real training shapes, with the same budgets and selection as PLAD.
+def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], None] | None = None) -> dict:
+    """REINFORCE fine-tuning on the real training shapes, with the same budget and selection as PLAD.
 
     Every ``steps_per_epoch`` batches the model is validated (beam ``val_beam``);
     the best one is kept in ``best.pt``. Stops on ``patience``, ``max_epochs``
@@ -129,67 +126,47 @@ def rl_finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_sh
     """
     from plad.search import infer_batched
 
-    out = Path(out_dir)
+    model, domain, out, seed = job.model, job.domain, job.out_dir, job.seed
     out.mkdir(parents=True, exist_ok=True)
-    metric = domain.metric
-    sign = 1.0 if metric.higher_is_better else -1.0
     names = domain.tokens.names
     device = next(model.parameters()).device
     learner = Reinforce(model, domain, cfg, seed=seed)
-    key = f"val_{metric.name}"
+    learner_file = out / "learner.pt"
 
     def validate() -> float:
-        return float(infer_batched(model, domain, val_shapes, cfg.val_beam, cfg.val_batch, desc="validate")[0].mean())
+        return float(infer_batched(model, domain, job.val, cfg.val_beam, cfg.val_batch, desc="validate")[0].mean())
 
-    state_file, learner_file = out / "state.json", out / "learner.pt"
-    if state_file.exists():
-        state = json.loads(state_file.read_text())
+    def save(unit: int, folder: Path) -> None:   # staged, then moved to out/ by the store's commit
+        save_checkpoint(folder / learner_file.name, model, domain.name, names, {
+            "optimizer": learner.opt.state_dict(), "generator": learner.generator.get_state(),
+            "baseline": learner.baseline, "batches": learner.batches})
+
+    def restore() -> None:
         payload = read_checkpoint(learner_file)
         model.load_state_dict(payload["state_dict"])
         learner.opt.load_state_dict(payload["optimizer"])
         learner.generator.set_state(payload["generator"])
         learner.baseline, learner.batches = payload["baseline"], payload["batches"]
-    else:
-        start = validate()
-        save_checkpoint(out / "best.pt", model, domain.name, names, {"epoch": 0, "val": start})
-        state = {"epoch": 0, "best": start, "best_epoch": 0, "epochs_since_best": 0, "seconds": 0.0,
-                 "history": [{"epoch": 0, key: start, "seconds": 0.0}]}
-    budget = max_minutes * 60 if max_minutes is not None else math.inf
-    stopped = "max_epochs"
-    while state["epoch"] < cfg.max_epochs:
-        if state["epochs_since_best"] >= cfg.patience:
-            stopped = "patience"
-            break
-        if state["seconds"] >= budget:
-            stopped = "budget"
-            break
-        epoch = state["epoch"] + 1
-        t0 = time.monotonic()
-        rng = np.random.default_rng([seed, epoch])
-        torch.manual_seed(seed * 1_000_003 + epoch)   # dropout masks: a resumed epoch draws the same
+
+    def keep_best(unit: int, value: float) -> None:
+        save_checkpoint(out / "best.pt", model, domain.name, names, {"unit": unit, "val": value})
+
+    def restore_best() -> None:
+        model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
+
+    def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
+        rng = np.random.default_rng([seed, unit])
+        torch.manual_seed(seed * 1_000_003 + unit)   # dropout masks: a resumed epoch draws the same
         totals: dict[str, float] = {}
         for _ in range(cfg.steps_per_epoch):
-            idx = np.sort(rng.choice(len(train_shapes), size=cfg.batch_size, replace=cfg.batch_size > len(train_shapes)))
-            step = learner.step(torch.from_numpy(train_shapes[idx]).to(device))
+            idx = np.sort(rng.choice(len(job.train), size=cfg.batch_size, replace=cfg.batch_size > len(job.train)))
+            step = learner.step(torch.from_numpy(job.train[idx]).to(device))
             for k, v in step.items():
                 totals[k] = totals.get(k, 0.0) + v / cfg.steps_per_epoch
         model.eval()
-        value = validate()
-        state["epoch"] = epoch
-        state["seconds"] += time.monotonic() - t0
-        if sign * (value - state["best"]) > cfg.min_delta:
-            state.update(best=value, best_epoch=epoch, epochs_since_best=0)
-            save_checkpoint(out / "best.pt", model, domain.name, names, {"epoch": epoch, "val": value})
-        else:
-            state["epochs_since_best"] += 1
-        row = {"epoch": epoch, key: value, **totals, "seconds": state["seconds"]}
-        state["history"].append(row)
-        save_checkpoint(learner_file, model, domain.name, names, {
-            "optimizer": learner.opt.state_dict(), "generator": learner.generator.get_state(),
-            "baseline": learner.baseline, "batches": learner.batches})
-        atomic_write_text(state_file, json.dumps(state, indent=2) + "\n")   # the epoch is finished
-        if on_epoch:
-            on_epoch(epoch, row)
-    model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
-    return {"method": "rl", "epochs": state["epoch"], "best_epoch": state["best_epoch"], key: state["best"],
-            "stopped": stopped, "train_seconds": round(state["seconds"], 1)}
+        return Unit(validate(), totals)
+
+    loop = Loop("epoch", domain.metric, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, job.budget_seconds),
+                JsonStore(out / "state.json", save=save, restore=restore))
+    result = loop.run(epoch, start=validate, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit)
+    return {"method": "rl", **result.summary()}

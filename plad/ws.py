@@ -7,7 +7,8 @@ the code back to a P x d prefix for the Transformer decoder. It is trained on
 pairs (E(z), z) for the programs z in P_BEST, with loss = token cross-entropy
 + ``kl_weight`` * KL(q(c | E(z)) || N(0, I)); both terms are per program
 (cross-entropy summed over its tokens), so weight 1 is the ELBO. Training
-stops early when the training loss has not improved for ``patience`` epochs.
+stops early when the training loss has not improved for ``patience`` epochs
+(the loop is :class:`plad.loop.Loop`, like every other trainer's).
 The generator persists across rounds (it is fine-tuned every round, starting
 from the recognition network the first time).
 
@@ -30,6 +31,7 @@ from torch import nn
 
 from plad.domains.base import Domain, split_padding
 from plad.fsutil import atomic_write
+from plad.loop import Limits, Loop, Objective, Unit
 from plad.model import ModelConfig, PLADNet
 from plad.pbest import PBest
 from plad.sampling import ancestral_sample
@@ -46,8 +48,9 @@ class WSConfig:
     lr: float = 1e-3
     batch_size: int = 100
     max_epochs: int = 100
-    #: epochs without a training-loss improvement before stopping
+    #: epochs without a training-loss improvement of more than ``min_delta`` before stopping
     patience: int = 10
+    min_delta: float = 1e-4
     #: batches per epoch (None: one pass over P_BEST)
     steps_per_epoch: int | None = None
     #: programs decoded per sampling batch
@@ -112,11 +115,17 @@ def load_generator(path: str | Path, device: torch.device) -> tuple[Generator, i
     return gen.to(device), int(payload["round"])
 
 
+#: the generator is selected on its training loss (there is no validation set of programs)
+WS_LOSS = Objective("ws_loss", higher_is_better=False)
+
+
 def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
                     max_seconds: float = math.inf) -> dict[str, float]:
-    """Fit the VAE on (execution, program) of every P_BEST entry; early stop on training loss."""
-    import time
+    """Fit the VAE on (execution, program) of every P_BEST entry; early stop on training loss.
 
+    Not resumable by itself: a round saves the generator once it is trained,
+    and a round killed before that trains it again from the same start.
+    """
     device = next(gen.parameters()).device
     idx_all = np.nonzero(pbest.has)[0]
     if len(idx_all) == 0:
@@ -124,9 +133,10 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
     rng = np.random.default_rng(seed)
     opt = torch.optim.Adam(gen.parameters(), lr=cfg.lr)
     steps = cfg.steps_per_epoch or max(1, math.ceil(len(idx_all) / cfg.batch_size))
-    best, best_state, bad, epoch, start = math.inf, None, 0, 0, time.monotonic()
+    best: dict[str, dict[str, torch.Tensor]] = {}
     gen.train()
-    for epoch in range(1, cfg.max_epochs + 1):
+
+    def epoch(unit: int, remaining) -> Unit:
         order = rng.permutation(np.resize(idx_all, steps * cfg.batch_size))
         total = 0.0
         for s in range(steps):
@@ -139,18 +149,19 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
             torch.nn.utils.clip_grad_norm_(gen.parameters(), 1.0)
             opt.step()
             total += float(loss.detach())
-        total /= steps
-        if total < best - 1e-4:
-            best, bad = total, 0
-            best_state = {k: v.detach().clone() for k, v in gen.state_dict().items()}
-        else:
-            bad += 1
-        if bad >= cfg.patience or time.monotonic() - start > max_seconds:
-            break
-    if best_state is not None:
-        gen.load_state_dict(best_state)
+        return Unit(total / steps)
+
+    def keep_best(unit: int, value: float) -> None:   # in memory: see the docstring
+        best["state"] = {k: v.detach().clone() for k, v in gen.state_dict().items()}
+
+    def restore_best() -> None:
+        if best:
+            gen.load_state_dict(best["state"])
+
+    loop = Loop("epoch", WS_LOSS, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, max_seconds))
+    result = loop.run(epoch, keep_best=keep_best, restore_best=restore_best)
     gen.eval()
-    return {"ws_loss": best, "ws_epochs": epoch}
+    return {"ws_loss": result.best, "ws_epochs": result.units}
 
 
 def sample_dataset(gen: Generator, domain: Domain, n: int, cfg: WSConfig,

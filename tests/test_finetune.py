@@ -7,9 +7,12 @@ import torch
 
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.finetune import FinetuneConfig, finetune
+from plad.job import Job
+from plad.loop import budget_seconds
+from plad.methods import MethodConfig
 from plad.model import ModelConfig, PLADNet
 from plad.pbest import PBest
+from plad.rounds import RoundsConfig, run_rounds
 from plad.train import TrainConfig
 from plad.ws import WSConfig, new_generator, sample_dataset, train_generator
 
@@ -31,17 +34,25 @@ def shapes():
 
 
 def config(rounds=2):
-    return FinetuneConfig(infer_beam=2, infer_batch=24, val_beam_epoch=1, val_beam_round=2,
-                          max_rounds=rounds, round_patience=100,
-                          train=TrainConfig(batch_size=16, lr=1e-3, steps_per_epoch=3, max_epochs=2, patience=5),
-                          ws=WSConfig(latent=8, hidden=16, batch_size=16, max_epochs=3, sample_batch=64))
+    return RoundsConfig(infer_beam=2, infer_batch=24, val_beam_epoch=1, val_beam_round=2,
+                        max_rounds=rounds, round_patience=100,
+                        train=TrainConfig(batch_size=16, lr=1e-3, steps_per_epoch=3, max_epochs=2, patience=5),
+                        ws=WSConfig(latent=8, hidden=16, batch_size=16, max_epochs=3, sample_batch=64))
+
+
+def rounds(model, shapes, method, cfg, out, max_minutes=None, pbest_mode="all-time"):
+    train, val = shapes
+    job = Job(model, DOMAIN, train, val, out, budget_seconds=budget_seconds(max_minutes))
+    return run_rounds(job, MethodConfig(method, pbest_mode), cfg)
 
 
 def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
-    train, val = shapes
-    summary = finetune(tiny_model(), DOMAIN, train, val, "lest+st", config(), tmp_path)
-    assert summary["rounds"] == 2 and summary["stopped"] == "max_rounds"
+    summary = rounds(tiny_model(), shapes, "lest+st", config(), tmp_path)
+    assert summary["units"] == 2 and summary["unit_name"] == "round" and summary["stopped"] == "max_rounds"
     state = json.loads((tmp_path / "state.json").read_text())
+    assert [r["unit"] for r in state["history"]] == [0, 1, 2]
+    vals = [r["val"] for r in state["history"]]
+    assert summary["val"] == min(vals) == vals[summary["best_unit"]]   # Chamfer: lower is better
     means = [r["pbest_mean"] for r in state["history"][1:]]
     assert len(means) == 2 and means[1] <= means[0] + 1e-12  # all-time P_BEST never gets worse
     pbest = PBest.load(tmp_path / "pbest.npz", DOMAIN.metric)
@@ -50,13 +61,19 @@ def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
     assert np.array_equal(again, pbest.executions)
 
 
+def test_the_method_sets_the_pbest_mode(tmp_path, shapes):
+    rounds(tiny_model(), shapes, "lest+st", config(rounds=1), tmp_path, pbest_mode="per-round")
+    assert PBest.load(tmp_path / "pbest.npz", DOMAIN.metric).mode == "per-round"
+
+
 @pytest.mark.parametrize("method", ["lest+st", "lest+st+ws"])
 def test_resume_after_a_kill_continues_identically(tmp_path, shapes, method):
-    train, val = shapes
-    finetune(tiny_model(), DOMAIN, train, val, method, config(rounds=2), tmp_path / "straight")
-    finetune(tiny_model(), DOMAIN, train, val, method, config(rounds=1), tmp_path / "killed")  # stops after round 1
+    straight = rounds(tiny_model(), shapes, method, config(rounds=2), tmp_path / "straight")
+    rounds(tiny_model(), shapes, method, config(rounds=1), tmp_path / "killed")  # stops after round 1
     # the same command again, with another initial model: everything comes from disk
-    finetune(tiny_model(seed=5), DOMAIN, train, val, method, config(rounds=2), tmp_path / "killed")
+    resumed = rounds(tiny_model(seed=5), shapes, method, config(rounds=2), tmp_path / "killed")
+    assert {k: v for k, v in straight.items() if k != "train_seconds"} == \
+        {k: v for k, v in resumed.items() if k != "train_seconds"}
     a = torch.load(tmp_path / "straight" / "current.pt", weights_only=False)["state_dict"]
     b = torch.load(tmp_path / "killed" / "current.pt", weights_only=False)["state_dict"]
     for k in a:
@@ -89,15 +106,13 @@ def test_wake_sleep_generator_learns_and_samples_unique_nonempty_programs(shapes
 
 
 def test_wake_sleep_rounds_write_generator_and_samples(tmp_path, shapes):
-    train, val = shapes
-    summary = finetune(tiny_model(), DOMAIN, train, val, "lest+st+ws", config(rounds=1), tmp_path)
-    assert summary["rounds"] == 1
+    summary = rounds(tiny_model(), shapes, "lest+st+ws", config(rounds=1), tmp_path)
+    assert summary["units"] == 1
     assert (tmp_path / "ws_generator.pt").exists() and (tmp_path / "ws_round_001.npz").exists()
     row = json.loads((tmp_path / "state.json").read_text())["history"][1]
     assert row["ws_unique"] > 0 and 0 <= row["ws_empty_share"] <= 1
 
 
 def test_budget_stops_rounds(tmp_path, shapes):
-    train, val = shapes
-    summary = finetune(tiny_model(), DOMAIN, train, val, "st", config(rounds=50), tmp_path, max_minutes=1e-4)
-    assert summary["stopped"] == "budget" and summary["rounds"] == 1
+    summary = rounds(tiny_model(), shapes, "st", config(rounds=50), tmp_path, max_minutes=1e-4)
+    assert summary["stopped"] == "budget" and summary["units"] == 1

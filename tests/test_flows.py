@@ -129,7 +129,7 @@ def test_finetune_flow_runs_rounds_as_tasks_and_reports(smoke_params, prefect_ha
     out = finetune_flow(str(smoke_params), run_name="once")
     root = smoke_params.parent / "flows" / "once"
     summary = out["methods"]["lest_st_ws"]
-    assert summary["rounds"] == 2 and np.isfinite(summary["test"])
+    assert summary["units"] == 2 and np.isfinite(summary["test"])
     assert (root / "finetune" / "csg2d" / "lest_st_ws" / "ws_round_002.npz").exists()
     table = (root / "results" / "table.md").read_text()
     assert "| LEST+ST+WS |" in table and "| SP |" in table

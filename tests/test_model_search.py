@@ -1,4 +1,6 @@
 """p(z|x), checkpoints, resumable training, beam search (generic; exercised on 2D CSG)."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -6,7 +8,7 @@ import torch
 from plad.checkpoint import CheckpointError, load_model, save_checkpoint
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.model import ModelConfig, PLADNet
+from plad.model import Architecture, ModelConfig, PLADNet
 from plad.search import beam_search, greedy_decode, infer_programs
 from plad.train import TrainConfig, fit
 
@@ -58,7 +60,7 @@ def trained(tmp_path_factory, programs):
     result = fit(model, synthetic_batches(programs[:-256]), validate,
                  TrainConfig(batch_size=64, lr=3e-3, steps_per_epoch=40, max_epochs=5, patience=5),
                  out, domain="csg2d", token_names=DOMAIN.tokens.names,
-                 on_epoch=lambda e, m: history.append(m))
+                 on_unit=lambda e, row: history.append(row))
     return model, history, result, out
 
 
@@ -83,10 +85,13 @@ def test_training_lowers_the_loss(trained):
     _, history, result, _ = trained
     assert history[-1]["val_loss"] < history[0]["val_loss"] - 0.2
     assert history[-1]["train_loss"] < history[0]["train_loss"]
-    assert result.best_epoch >= 4
+    assert result.best_unit >= 4
+    assert [row["unit"] for row in history] == [1, 2, 3, 4, 5]
+    assert all(row["val"] == row["val_loss"] for row in history)   # pretraining selects on the loss
 
 
-def test_resume_after_a_kill_continues_identically(tmp_path, programs):
+@pytest.mark.parametrize("written_by", ["this version", "a version before plad.loop"])
+def test_resume_after_a_kill_continues_identically(tmp_path, programs, written_by):
     cfg = dict(batch_size=32, lr=1e-3, steps_per_epoch=5, patience=10)
     val_batch = next(synthetic_batches(programs[:64], batch_size=64)(0))
 
@@ -103,9 +108,40 @@ def test_resume_after_a_kill_continues_identically(tmp_path, programs):
 
     straight = run(tmp_path / "a", 3)
     run(tmp_path / "b", 1)          # "killed" after one epoch
+    if written_by != "this version":   # the loop state as the earlier fit() wrote it
+        payload = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
+        s = payload.pop("loop")
+        payload["train_state"] = {"epoch": s["unit"], "best": s["best"], "best_epoch": s["best_unit"],
+                                  "bad_epochs": s["since_best"], "seconds": s["seconds"]}
+        torch.save(payload, tmp_path / "b" / "last.pt")
     resumed = run(tmp_path / "b", 3)  # the same command again
     for k in straight:
         assert torch.equal(straight[k], resumed[k]), k
+
+
+def test_checkpoints_of_earlier_versions_load(tmp_path):
+    """A checkpoint config as written before Architecture existed (other key order, lists, fewer keys)."""
+    torch.manual_seed(0)
+    model = PLADNet(tiny_config()).eval()
+    old = {"vocab_size": len(DOMAIN.tokens), "max_len": DOMAIN.tokens.max_len, "input_shape": [64, 64],
+           "d_model": 32, "n_layers": 1, "n_heads": 2, "dim_ff": 64, "dropout": 0.1, "enc_channels": [4, 8, 8, 16]}
+    torch.save({"format": "plad-checkpoint-1", "domain": "csg2d", "tokens": DOMAIN.tokens.names, "config": old,
+                "state_dict": model.state_dict()}, tmp_path / "old.pt")
+    loaded, _ = load_model(tmp_path / "old.pt")
+    assert loaded.cfg == model.cfg
+    x = torch.rand(4, 64, 64) > 0.7
+    assert greedy_decode(loaded, DOMAIN.tokens, x) == greedy_decode(model, DOMAIN.tokens, x)
+
+
+def test_one_architecture_dataclass_for_params_and_checkpoints():
+    from plad.config import build
+    from plad.stages.pretrain import PretrainConfig
+
+    cfg = build(PretrainConfig, {"domain": "csg2d", "model": {"d_model": 32, "n_heads": 2, "enc_channels": [4, 8]}},
+                "pretrain")
+    net = ModelConfig.for_domain(cfg.model, DOMAIN)
+    assert net == tiny_config(n_layers=Architecture().n_layers, dim_ff=Architecture().dim_ff, enc_channels=(4, 8))
+    assert set(net.to_dict()) == {f.name for f in dataclasses.fields(ModelConfig)}
 
 
 def test_checkpoint_rebuilds_the_model_from_the_file_alone(trained, tmp_path):

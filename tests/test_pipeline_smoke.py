@@ -48,7 +48,7 @@ def test_smoke_repro_writes_metrics_and_grid(smoke_run):
     lines = (work / "results" / "eval" / "sp" / "csg2d" / "test_programs.csv").read_text().splitlines()
     assert len(lines) == 21 and lines[0] == "index,chamfer,program"
     summary = json.loads((work / "runs" / "pretrain" / "csg2d" / "summary.json").read_text())
-    assert summary["epochs"] == 2
+    assert summary["units"] == 2 and summary["unit_name"] == "epoch"
     for domain in ("csg3d", "shapeassembly"):
         sp = json.loads((work / "results" / "eval" / "sp" / domain / "metrics.json").read_text())
         assert sp["metric"] == "iou" and sp["higher_is_better"] and sp["test"]["n"] == 10

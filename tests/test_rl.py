@@ -7,8 +7,10 @@ import torch
 
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
+from plad.job import Job
+from plad.loop import budget_seconds
 from plad.model import ModelConfig, PLADNet
-from plad.rl import Reinforce, RLConfig, masked_log_probs, reward, rl_finetune, sample_programs
+from plad.rl import Reinforce, RLConfig, masked_log_probs, reward, run_rl, sample_programs
 
 DOMAIN = get_domain("csg2d")
 
@@ -70,19 +72,24 @@ def rl_config(epochs):
     return RLConfig(lr=1e-2, batch_size=8, steps_per_epoch=2, max_epochs=epochs, val_beam=2, val_batch=8)
 
 
+def rl(train, val, cfg, out, seed=0, max_minutes=None):
+    return run_rl(Job(tiny_model(), DOMAIN, train, val, out, seed=seed, budget_seconds=budget_seconds(max_minutes)),
+                  cfg)
+
+
 def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path):
     train, val = targets(24).numpy(), targets(8).numpy()
-    summary = rl_finetune(tiny_model(), DOMAIN, train, val, rl_config(3), tmp_path / "straight", seed=1)
-    assert summary["epochs"] == 3 and summary["stopped"] == "max_epochs"
+    summary = rl(train, val, rl_config(3), tmp_path / "straight", seed=1)
+    assert summary["units"] == 3 and summary["unit_name"] == "epoch" and summary["stopped"] == "max_epochs"
     state = json.loads((tmp_path / "straight" / "state.json").read_text())
-    key = f"val_{DOMAIN.metric.name}"
-    vals = [r[key] for r in state["history"]]
-    assert len(vals) == 4 and state["best"] == vals[state["best_epoch"]] and state["best"] <= vals[0]
+    vals = [r["val"] for r in state["history"]]
+    assert [r["unit"] for r in state["history"]] == [0, 1, 2, 3]
+    assert state["best"] == vals[state["best_unit"]] and state["best"] <= vals[0]
     best = torch.load(tmp_path / "straight" / "best.pt", weights_only=False)
-    assert best["epoch"] == state["best_epoch"]
-    rl_finetune(tiny_model(), DOMAIN, train, val, rl_config(1), tmp_path / "killed", seed=1)
+    assert best["unit"] == state["best_unit"]
+    rl(train, val, rl_config(1), tmp_path / "killed", seed=1)
     torch.manual_seed(123)  # the resumed run must not depend on the global RNG
-    rl_finetune(tiny_model(), DOMAIN, train, val, rl_config(3), tmp_path / "killed", seed=1)
+    rl(train, val, rl_config(3), tmp_path / "killed", seed=1)
     a = torch.load(tmp_path / "straight" / "learner.pt", weights_only=False)
     b = torch.load(tmp_path / "killed" / "learner.pt", weights_only=False)
     for k in a["state_dict"]:
@@ -92,5 +99,5 @@ def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path):
 
 def test_rl_budget_stops_after_one_epoch(tmp_path):
     train, val = targets(24).numpy(), targets(8).numpy()
-    summary = rl_finetune(tiny_model(), DOMAIN, train, val, rl_config(100), tmp_path, max_minutes=1e-5)
-    assert summary["stopped"] == "budget" and summary["epochs"] == 1
+    summary = rl(train, val, rl_config(100), tmp_path, max_minutes=1e-5)
+    assert summary["stopped"] == "budget" and summary["units"] == 1

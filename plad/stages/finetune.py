@@ -7,7 +7,8 @@ same wall-clock budget (``max_minutes``) and the same model selection on the
 validation shapes. Writes to ``out_dir/<domain>/<key>/``: ``best.pt`` (the
 selected model), ``state.json`` (per-round history with wall-clock seconds),
 ``summary.json``, and the method's resumable state (P_BEST, generator, ...).
-A killed run, started again, resumes at its last finished round.
+A killed run, started again, resumes at its last finished round. The PLAD
+rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`.
 """
 from __future__ import annotations
 
@@ -19,18 +20,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.finetune import FinetuneConfig
 from plad.fsutil import atomic_write_text
+from plad.methods import MethodConfig
 from plad.rl import RLConfig
+from plad.rounds import RoundHooks, RoundsConfig
 from plad.stages import stage_main
-
-
-@dataclass
-class MethodConfig:
-    #: "rl" or a PLAD mixture of st / lest / ws, e.g. "lest+st"
-    method: str = "lest+st"
-    #: P_BEST mode of PLAD methods: all-time (the paper's) or per-round (the supplement's ablation)
-    pbest_mode: str = "all-time"
 
 
 @dataclass
@@ -49,10 +43,11 @@ class FinetuneStageConfig:
     #: use only the first N training / validation shapes (None: all)
     train_limit: int | None = None
     val_limit: int | None = None
-    #: wall-clock budget of every method, in minutes (None: none)
+    #: wall-clock budget of every method, in minutes (None: none); the run's only budget knob
     max_minutes: float | None = None
     methods: dict[str, MethodConfig] = field(default_factory=dict)
-    plad: FinetuneConfig = field(default_factory=FinetuneConfig)
+    #: the PLAD rounds (every PLAD method); the P_BEST mode is each method's
+    plad: RoundsConfig = field(default_factory=RoundsConfig)
     rl: RLConfig = field(default_factory=RLConfig)
 
 
@@ -93,33 +88,38 @@ def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
     return train, val
 
 
-def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer=None, step=None) -> dict:
-    """Fine-tune one method (a pure function of the config and the files it names)."""
+def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) -> dict:
+    """Fine-tune one method (a pure function of the config and the files it names).
+
+    ``hooks`` (optional) run the steps of a PLAD round and hear about each
+    round; for RL, ``hooks.on_unit`` hears about each epoch.
+    """
     from plad.checkpoint import load_model
     from plad.device import resolve_device
     from plad.domains import get_domain
-    from plad.finetune import finetune
-    from plad.rl import rl_finetune
+    from plad.job import Job
+    from plad.loop import budget_seconds
+    from plad.rl import run_rl
+    from plad.rounds import run_rounds
 
     spec = method_of(cfg)
+    hooks = hooks or RoundHooks()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device)
     model, name = load_model(cfg.checkpoint, device, expect_domain=cfg.domain)
     domain = get_domain(name)
     train, val = load_shapes(cfg)
-    out = run_dir(cfg)
     torch.manual_seed(cfg.seed)
+    job = Job(model, domain, train, val, run_dir(cfg), seed=cfg.seed, budget_seconds=budget_seconds(cfg.max_minutes))
     if spec.method == "rl":
-        summary = rl_finetune(model, domain, train, val, cfg.rl, out, max_minutes=cfg.max_minutes, seed=cfg.seed,
-                              on_epoch=(lambda e, row: on_round(e, row)) if on_round else None)
+        summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
-        plad_cfg = FinetuneConfig(**{**cfg.plad.__dict__, "pbest_mode": spec.pbest_mode})
-        summary = finetune(model, domain, train, val, spec.method, plad_cfg, out, max_minutes=cfg.max_minutes,
-                           seed=cfg.seed, infer=infer, on_round=on_round, on_epoch=on_epoch, step=step)
+        summary = run_rounds(job, spec, cfg.plad, hooks)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
     text = json.dumps(summary, indent=2) + "\n"
+    out = job.out_dir
     atomic_write_text(out / "summary.json", text)
     atomic_write_text(Path(cfg.summary_dir) / cfg.domain / f"{cfg.key}.json", text)
     return summary
@@ -128,6 +128,7 @@ def finetune_stage(cfg: FinetuneStageConfig, on_round=None, on_epoch=None, infer
 def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
     """:func:`finetune_stage` as one MLflow run, with a nested run per round (or RL epoch)."""
     from plad.checkpoint import read_checkpoint
+    from plad.loop import read_state
     from plad.tracking import StageRun
 
     method_of(cfg)
@@ -145,18 +146,16 @@ def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
             numbers = {k: float(v) for k, v in row.items() if isinstance(v, (int, float)) and np.isfinite(v)}
             run.log_metrics(numbers, step=rnd)
             # the convergence curve: validation metric against training wall-clock seconds
-            value = next(v for k, v in numbers.items() if k.startswith("val_"))
-            run.log_metrics({"val_at_seconds": value}, step=int(round(numbers["seconds"])))
+            run.log_metrics({"val_at_seconds": row["val"]}, step=int(round(row["seconds"])))
             with run.nested(f"round_{rnd:03d}", round=rnd) as child:
                 child.log_metrics(numbers, step=rnd)
                 for e, m in epochs:
                     child.log_metrics({k: float(v) for k, v in m.items() if np.isfinite(v)}, step=e)
             epochs.clear()
 
-        summary = finetune_stage(cfg, on_round=on_round, on_epoch=on_epoch, infer=infer, step=step)
-        state = json.loads((out / "state.json").read_text())
-        start = state["history"][0]   # the pretrained model's validation metric, at 0 s
-        run.log_metrics({"val_at_seconds": next(v for k, v in start.items() if k.startswith("val_"))}, step=0)
+        summary = finetune_stage(cfg, RoundHooks(infer=infer, step=step, on_unit=on_round, on_epoch=on_epoch))
+        start = read_state(out / "state.json").history[0]   # the pretrained model's validation metric, at 0 s
+        run.log_metrics({"val_at_seconds": start["val"]}, step=0)
         run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
         run.set_tags({"plad.stopped": summary["stopped"]})
         for name in ["summary.json", "state.json", "best.pt"]:

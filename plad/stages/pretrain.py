@@ -26,24 +26,10 @@ from plad.config import ConfigError
 from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
-from plad.model import ModelConfig, PLADNet, count_parameters
+from plad.loop import budget_seconds
+from plad.model import Architecture, ModelConfig, PLADNet, count_parameters
 from plad.stages import stage_main
 from plad.train import TrainConfig, fit
-
-
-@dataclass
-class ModelSection:
-    """Architecture knobs; vocabulary, length cap and input shape come from the domain."""
-
-    d_model: int = 128
-    n_layers: int = 3
-    n_heads: int = 4
-    dim_ff: int = 256
-    dropout: float = 0.1
-    enc_channels: list[int] = field(default_factory=lambda: [8, 16, 32, 64])
-    enc_norm: bool = False
-    coord_channels: bool = False
-    enc_kernel: int | None = None
 
 
 @dataclass
@@ -58,14 +44,10 @@ class PretrainConfig:
     seed: int = 0
     #: synthetic validation shapes decoded greedily each epoch for the domain metric
     val_metric_shapes: int = 200
-    model: ModelSection = field(default_factory=ModelSection)
+    #: budget of training time, minutes, counted across resumes (None: none)
+    max_minutes: float | None = None
+    model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
-
-
-def model_config(domain, section_cfg: ModelSection) -> ModelConfig:
-    return ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                       input_shape=domain.shape, **{**asdict(section_cfg),
-                                                    "enc_channels": tuple(section_cfg.enc_channels)})
 
 
 def load_programs(path: Path) -> dict[str, torch.Tensor]:
@@ -93,7 +75,7 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     torch.manual_seed(cfg.seed)
     data = load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")
     train, val = data["train"], data["val"]
-    model = PLADNet(model_config(domain, cfg.model)).to(device)
+    model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     out = Path(cfg.out_dir) / cfg.domain
     out.mkdir(parents=True, exist_ok=True)
     history = out / "history.csv"
@@ -123,16 +105,20 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
         values = metric(domain.execute(pad_programs(decoded, device=device)), shapes)
         return {"val_loss": tot / n, "val_acc": acc / n, f"val_{metric.name}": float(values.mean())}
 
-    def record(epoch: int, metrics: dict[str, float]) -> None:
-        row = {"epoch": epoch, **{k: round(v, 6) for k, v in metrics.items()}}
+    def record(unit: int, row: dict[str, float]) -> None:
+        # history.csv keeps its columns (DVC plots it: x epoch, y val_loss); the loop's own
+        # bookkeeping (unit, val, seconds) is in last.pt
+        metrics = {k: v for k, v in row.items() if k not in ("unit", "val", "seconds", "unit_seconds")}
+        metrics["epoch_seconds"] = row["unit_seconds"]
+        line = {"epoch": unit, **{k: round(v, 6) for k, v in metrics.items()}}
         new = not history.exists()
         with history.open("a", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(row))
+            writer = csv.DictWriter(fh, fieldnames=list(line))
             if new:
                 writer.writeheader()
-            writer.writerow(row)
+            writer.writerow(line)
         if on_epoch:
-            on_epoch(epoch, metrics)
+            on_epoch(unit, metrics)
 
     # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
@@ -143,10 +129,10 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
-                 objective="val_loss", on_epoch=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint)
+                 budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
+                 fingerprint=fingerprint)
     final = validate(model)
-    summary = {"domain": cfg.domain, "parameters": count_parameters(model), "best_epoch": result.best_epoch,
-               "epochs": result.epochs, "stopped": result.stopped, "train_seconds": round(result.seconds, 1),
+    summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
                **{k: round(v, 6) for k, v in final.items()}}
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")

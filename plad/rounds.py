@@ -22,7 +22,8 @@ stage and the flow.
 Everything needed to resume is on disk after each round (``state.json``,
 ``pbest.npz``, ``current.pt``, ``best.pt``) and within a round (the round's
 ``last.pt``): a killed run continues at the last finished round with the
-same P_BEST.
+same P_BEST. The loop over rounds (patience, budget, selection, history) is
+:class:`plad.loop.Loop`, as for every other trainer.
 """
 from __future__ import annotations
 
@@ -30,18 +31,20 @@ import io
 import json
 import logging
 import math
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
-from plad.fsutil import atomic_write, atomic_write_text
-from plad.methods import lest_source, mixture_batches, parse_mixture, st_source
+from plad.fsutil import atomic_write
+from plad.job import Job
+from plad.loop import JsonStore, Limits, Loop, Objective, Unit
+from plad.methods import MethodConfig, lest_source, mixture_batches, parse_mixture, st_source
 from plad.model import PLADNet
 from plad.pbest import PBest
 from plad.search import infer_batched
@@ -52,8 +55,9 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class FinetuneConfig:
-    pbest_mode: str = "all-time"
+class RoundsConfig:
+    """Settings of the PLAD rounds (params ``finetune.<domain>.plad``); the P_BEST mode is the method's."""
+
     infer_beam: int = 5
     infer_batch: int = 100
     val_beam_epoch: int = 3
@@ -63,8 +67,7 @@ class FinetuneConfig:
     round_patience: int = 1000
     #: minimum improvement of the validation metric that counts
     min_delta: float = 0.005
-    train: TrainConfig = field(default_factory=lambda: TrainConfig(batch_size=100, lr=1e-3, steps_per_epoch=100,
-                                                                    max_epochs=100, patience=10))
+    train: TrainConfig = field(default_factory=TrainConfig)
     ws: WSConfig = field(default_factory=WSConfig)
 
 
@@ -112,106 +115,94 @@ def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConf
     return programs, executions, stats
 
 
-def finetune(model: PLADNet, domain: Domain, train_shapes: np.ndarray, val_shapes: np.ndarray,
-             method: str, cfg: FinetuneConfig, out_dir: str | Path, *, max_minutes: float | None = None,
-             seed: int = 0, infer: Infer | None = None,
-             on_round: Callable[[int, dict[str, float]], None] | None = None,
-             on_epoch: Callable[[int, int, dict[str, float]], None] | None = None,
-             step: Step | None = None) -> dict:
-    """Fine-tune ``model`` towards ``train_shapes`` with the PLAD ``method`` (e.g. ``"lest+st"``).
+@dataclass
+class RoundHooks:
+    """How the steps of a round run and who hears about them (all optional)."""
 
-    Resumable from ``out_dir``. ``max_minutes`` bounds the wall-clock time of
-    the rounds (inference, generator, training, validation) across resumes.
-    ``step(name, fn, *args)`` runs each step of a round (default: ``fn(*args)``);
-    the Prefect flow makes each one a task.
+    #: inference over the training shapes (default: one batched beam search in this process)
+    infer: Infer | None = None
+    #: ``step(name, fn, *args)`` runs each step of a round (default: ``fn(*args)``); the Prefect flow makes tasks
+    step: Step | None = None
+    #: ``on_unit(round, row)`` after each finished round, with its history row
+    on_unit: Callable[[int, dict[str, Any]], None] | None = None
+    #: ``on_epoch(round, epoch, row)`` after each training epoch inside a round
+    on_epoch: Callable[[int, int, dict[str, Any]], None] | None = None
+
+
+def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHooks | None = None) -> dict:
+    """Fine-tune ``job.model`` towards ``job.train`` with the PLAD ``method`` (e.g. ``lest+st``, all-time P_BEST).
+
+    Resumable from ``job.out_dir``. ``job.budget_seconds`` bounds the wall-clock
+    time of the rounds (inference, generator, training, validation) across
+    resumes. Returns the run summary (:meth:`plad.loop.LoopResult.summary`).
     """
-    run = step or _direct
-    mixture = parse_mixture(method)
+    hooks = hooks or RoundHooks()
+    run = hooks.step or _direct
+    mixture = parse_mixture(method.method)
+    model, domain, out = job.model, job.domain, job.out_dir
+    infer = hooks.infer
     if infer is None:
         def infer(m: PLADNet, shapes: np.ndarray):
             return infer_batched(m, domain, shapes, cfg.infer_beam, cfg.infer_batch, desc="infer")
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     metric = domain.metric
-    sign = 1.0 if metric.higher_is_better else -1.0
     device = next(model.parameters()).device
-    val = val_shapes
     names = domain.tokens.names
+    pbest = PBest(len(job.train), domain.shape, domain.tokens.max_len, metric, method.pbest_mode)
 
-    state_file = out / "state.json"
-    if state_file.exists():
-        state = json.loads(state_file.read_text())
+    def restore() -> None:
+        nonlocal pbest
         model.load_state_dict(read_checkpoint(out / "current.pt")["state_dict"])
         pbest = PBest.load(out / "pbest.npz", metric)
-        log.info("resuming %s after round %d", out, state["round"])
-    else:
-        pbest = PBest(len(train_shapes), domain.shape, domain.tokens.max_len, metric, cfg.pbest_mode)
-        start_value = mean_metric(model, domain, val, cfg.val_beam_round, cfg.infer_batch)
-        save_checkpoint(out / "best.pt", model, domain.name, names, {"round": 0, "val": start_value})
-        state = {"round": 0, "best": start_value, "best_round": 0, "epochs_since_best": 0, "seconds": 0.0,
-                 "history": [{"round": 0, f"val_{metric.name}": start_value, "seconds": 0.0}]}
-    budget = max_minutes * 60 if max_minutes is not None else math.inf
-    stopped = "max_rounds"
-    while state["round"] < cfg.max_rounds:
-        if state["epochs_since_best"] >= cfg.round_patience:
-            stopped = "patience"
-            break
-        if state["seconds"] >= budget:
-            stopped = "budget"
-            break
-        rnd = state["round"] + 1
-        t0 = time.monotonic()
-        torch.manual_seed(seed * 1_000_003 + rnd)  # a resumed round draws the same dropout masks
+
+    def save(unit: int, folder: Path) -> None:   # staged, then moved to out/ by the store's commit
+        save_checkpoint(folder / "current.pt", model, domain.name, names, {"unit": unit})
+        pbest.save(folder / "pbest.npz")
+
+    def validate_round() -> float:
+        return mean_metric(model, domain, job.val, cfg.val_beam_round, cfg.infer_batch)
+
+    def keep_best(unit: int, value: float) -> None:
+        save_checkpoint(out / "best.pt", model, domain.name, names, {"unit": unit, "val": value})
+
+    def restore_best() -> None:
+        model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
+
+    def validate_epoch(m: PLADNet) -> dict[str, float]:
+        return {"val": mean_metric(m, domain, job.val, cfg.val_beam_epoch, cfg.infer_batch)}
+
+    def one_round(rnd: int, remaining: Callable[[], float]) -> Unit:
+        nonlocal pbest
+        torch.manual_seed(job.seed * 1_000_003 + rnd)  # a resumed round draws the same dropout masks
         round_dir = out / f"round_{rnd:03d}"
         if not (round_dir / "last.pt").exists():  # P_BEST of this round not yet updated (or a fresh round)
-            stats = run(f"round {rnd}: infer", infer_into_pbest, model, train_shapes, pbest, infer)
+            stats = run(f"round {rnd}: infer", infer_into_pbest, model, job.train, pbest, infer)
             pbest.save(out / "pbest_round.npz")
         else:
             pbest = PBest.load(out / "pbest_round.npz", metric)
             stats = {"pbest_mean": float(np.nanmean(pbest.values)), "pbest_improved": math.nan}
         stats["pbest_filled"] = float(pbest.has.mean())
-        sources = {"st": st_source(pbest, train_shapes, device), "lest": lest_source(pbest, device)}
-        left = lambda: budget - state["seconds"] - (time.monotonic() - t0)  # noqa: E731
+        sources = {"st": st_source(pbest, job.train, device), "lest": lest_source(pbest, device)}
         if "ws" in mixture.names:
             ws_programs, ws_shapes, ws_stats = run(
-                f"round {rnd}: wake-sleep generator", wake_sleep_samples, model, domain, pbest, cfg.ws, out, rnd, len(train_shapes), seed * 104_729 + rnd, left())
+                f"round {rnd}: wake-sleep generator", wake_sleep_samples, model, domain, pbest, cfg.ws, out, rnd,
+                len(job.train), job.seed * 104_729 + rnd, remaining())
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
-        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=seed * 7919 + rnd)
-        train_cfg = cfg.train
-        if math.isfinite(budget):
-            minutes = max(left(), 0.0) / 60
-            if train_cfg.max_minutes is not None:
-                minutes = min(minutes, train_cfg.max_minutes)
-            train_cfg = replace(train_cfg, max_minutes=minutes)
-
-        def validate(m: PLADNet) -> dict[str, float]:
-            return {f"val_{metric.name}": mean_metric(m, domain, val, cfg.val_beam_epoch, cfg.infer_batch)}
-
-        result = run(f"round {rnd}: train", fit, model, batches, validate, train_cfg, round_dir,
+        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=job.seed * 7919 + rnd)
+        # the round trains within what is left of the run's budget
+        result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir,
                      domain=domain.name, token_names=names,
-                     objective=f"val_{metric.name}", higher_is_better=metric.higher_is_better,
-                     on_epoch=(lambda e, m: on_epoch(rnd, e, m)) if on_epoch else None,
-                     desc=f"round {rnd} train", fingerprint={"method": method, "round": rnd})
-        value = run(f"round {rnd}: validate", mean_metric, model, domain, val, cfg.val_beam_round, cfg.infer_batch)
-        improved = sign * (value - state["best"]) > cfg.min_delta
-        state["round"] = rnd
-        state["seconds"] += time.monotonic() - t0
-        if improved:
-            state.update(best=value, best_round=rnd, epochs_since_best=0)
-            save_checkpoint(out / "best.pt", model, domain.name, names, {"round": rnd, "val": value})
-        else:
-            state["epochs_since_best"] += result.epochs
-        row = {"round": rnd, f"val_{metric.name}": value, **stats, "epochs": result.epochs,
-               "round_seconds": time.monotonic() - t0, "seconds": state["seconds"]}
-        state["history"].append(row)
-        # the round is finished once all of this is on disk; state.json last
-        save_checkpoint(out / "current.pt", model, domain.name, names, {"round": rnd})
-        pbest.save(out / "pbest.npz")
-        atomic_write_text(state_file, json.dumps(state, indent=2) + "\n")
-        if on_round:
-            on_round(rnd, row)
-    best = read_checkpoint(out / "best.pt")
-    model.load_state_dict(best["state_dict"])
-    return {"method": method, "rounds": state["round"], "best_round": state["best_round"],
-            f"val_{metric.name}": state["best"], "stopped": stopped, "train_seconds": round(state["seconds"], 1)}
+                     objective=Objective("val", metric.higher_is_better), budget_seconds=remaining(),
+                     on_unit=(lambda e, row: hooks.on_epoch(rnd, e, row)) if hooks.on_epoch else None,
+                     desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd})
+        value = run(f"round {rnd}: validate", mean_metric, model, domain, job.val, cfg.val_beam_round,
+                    cfg.infer_batch)
+        # patience counts training epochs, so that it means the same whatever the epochs per round
+        return Unit(value, {**stats, "epochs": result.units}, patience=result.units)
+
+    loop = Loop("round", metric, Limits(cfg.max_rounds, cfg.round_patience, cfg.min_delta, job.budget_seconds),
+                JsonStore(out / "state.json", save=save, restore=restore))
+    result = loop.run(one_round, start=validate_round, keep_best=keep_best, restore_best=restore_best,
+                      on_unit=hooks.on_unit)
+    return {"method": method.method, **result.summary()}
