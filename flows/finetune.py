@@ -127,7 +127,8 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
     if fcfg.evaluate:
         sp = dataclasses.replace(ev, out_dir=str(root / "results" / "eval" / "sp" / ft.domain))
         task(tracked_evaluate, name="evaluate sp", cache_policy=NONE)(sp)
-        rcfg = dataclasses.replace(rp, domains=[ft.domain], methods=["sp", *[k for k in keys if k not in rp.per_round.values()]],
+        rows = ["sp", *[k for k in keys if k not in rp.per_round.values()]]
+        rcfg = dataclasses.replace(rp, domains=[ft.domain], methods=rows,
                                    per_round={a: b for a, b in rp.per_round.items() if a in keys and b in keys},
                                    results_dir=str(root / "results"), finetune_dir=ft.out_dir,
                                    out_dir=str(root / "results"), register=False)
