@@ -10,13 +10,16 @@ from __future__ import annotations
 import abc
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
 
 from plad.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
+
+if TYPE_CHECKING:  # pragma: no cover
+    from plad.rewrite.space import RewriteSpace
 
 
 class Domain(abc.ABC):
@@ -28,6 +31,9 @@ class Domain(abc.ABC):
     shape: tuple[int, ...]
     #: the domain's reconstruction metric (declares whether higher is better)
     metric: Metric
+    #: optional: program rewriting and search support (the moves, program structure and
+    #: candidate generators of :mod:`plad.rewrite`); None: the domain has no search support
+    rewrite: "RewriteSpace | None" = None
 
     @property
     @abc.abstractmethod
