@@ -44,6 +44,8 @@ class RefineConfig:
     time_limit: float | None = None
     #: shapes processed together
     batch: int = 256
+    #: use the domain's cheap screen before the exact metric (false: score every candidate exactly)
+    screen: bool = True
 
 
 @dataclass
@@ -132,7 +134,7 @@ def refine(domain: "Domain", programs: Sequence[Sequence[int]], targets: torch.T
     out_programs: list[list[int]] = []
     out_values = []
     for sl in _batches(len(programs), cfg.batch):
-        scorer = Scorer(domain, targets[sl])
+        scorer = Scorer(domain, targets[sl], screen=cfg.screen)
         batch = [list(p) for p in programs[sl]]
         values = scorer.values(batch)
         deadline = None if cfg.time_limit is None else time.perf_counter() + cfg.time_limit
@@ -152,7 +154,7 @@ def search(domain: "Domain", targets: torch.Tensor, config: SearchConfig | None 
     out_programs: list[list[int]] = []
     out_values = []
     for sl in _batches(len(targets), cfg.refine.batch):
-        scorer = Scorer(domain, targets[sl])
+        scorer = Scorer(domain, targets[sl], screen=cfg.refine.screen)
         n = sl.stop - sl.start
         programs: list[list[int]] = [[] for _ in range(n)]
         values = scorer.values(programs)

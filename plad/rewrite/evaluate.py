@@ -103,7 +103,7 @@ class Scorer:
     are scored against ``targets[i]``.
     """
 
-    def __init__(self, domain: "Domain", targets: torch.Tensor):
+    def __init__(self, domain: "Domain", targets: torch.Tensor, screen: bool = True):
         if domain.rewrite is None:
             raise ValueError(f"the {domain.name} domain has no search support (its rewrite member is None)")
         self.domain = domain
@@ -111,6 +111,8 @@ class Scorer:
         self.metric = domain.metric
         self.targets = targets.to(torch.bool).cpu()
         self.stats = Stats()
+        #: use the domain's screen (False: every candidate is scored exactly; a slow baseline)
+        self.use_screen = screen
         self._screen_prepared = None
 
     @property
@@ -129,12 +131,14 @@ class Scorer:
             self.stats.exec += time.perf_counter() - t0
         return out
 
-    def values(self, programs: Sequence[Sequence[int]]) -> torch.Tensor:
-        """Exact metric (B,) float64 of program i against target i; the empty program scores the worst value."""
+    def values(self, programs: Sequence[Sequence[int]], owner: Sequence[int] | None = None) -> torch.Tensor:
+        """Exact metric (B,) float64 of program k against target ``owner[k]`` (default: target k);
+        the empty program scores the worst value."""
+        owner = list(range(len(programs))) if owner is None else list(owner)
         values = torch.full((len(programs),), float(self.metric.worst), dtype=torch.float64)
-        rows = [i for i, p in enumerate(programs) if len(p)]
+        rows = [k for k, p in enumerate(programs) if len(p)]
         if rows:
-            c = Candidates.from_lists([programs[i] for i in rows], rows)
+            c = Candidates.from_lists([programs[k] for k in rows], [owner[k] for k in rows])
             values[rows] = self.exact(c.tokens, c.owner)
         return values
 
@@ -190,19 +194,19 @@ class Scorer:
         self.stats.screened += C
         return scores
 
-    def best(self, cands: Candidates, n: int, screen: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    def best(self, cands: Candidates, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Best candidate of each of ``n`` programs: (row (n,) long, -1 where a program has no
         candidate; its exact value (n,) float64, the worst value where none).
 
-        Order: metric, then fewer tokens, then the first row. With ``screen``
-        (and a domain screen), only each program's ``screen_keep`` best by the
-        cheap score are scored exactly.
+        Order: metric, then fewer tokens, then the first row. With a domain
+        screen (and ``use_screen``), only each program's ``screen_keep`` best by
+        the cheap score are scored exactly.
         """
         rows = np.arange(len(cands))
         owner = cands.owner.numpy()
         lengths = cands.lengths.numpy()
         keep = self.space.screen_keep
-        if screen and keep is not None and len(cands) and np.bincount(owner, minlength=n).max() > keep:
+        if self.use_screen and keep is not None and len(cands) and np.bincount(owner, minlength=n).max() > keep:
             rows = top_per_group(self.screen(cands).numpy(), lengths, owner, keep)
         values = self.exact(cands.tokens[rows], cands.owner[rows]).numpy()
         best = np.full(n, -1, dtype=np.int64)

@@ -8,9 +8,9 @@ Over the expression tree the domain declares
   outputs is replaced by that child, and a node whose output is empty is
   removed (its parent replaced by its sibling). Repeated until nothing
   applies.
-* **top-down**: score every proper boolean sub-tree against the target;
-  among those within a tolerance of the best one (SIRI: 0.001 absolute or
-  0.005 relative), the shortest becomes the new program.
+* **top-down**: score every proper sub-tree (primitives included) against
+  the target; among those within a tolerance of the best one (SIRI: 0.001
+  absolute or 0.005 relative), the shortest becomes the new program.
 
 Every rewrite is checked by executing and scoring the whole new program and
 kept only if it improves the objective (metric, then fewer tokens), so a
@@ -37,7 +37,7 @@ def _accept(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, pro
     if not proposals:
         return 0
     rows = list(proposals)
-    new = scorer.values([proposals[i] for i in rows])
+    new = scorer.values([proposals[i] for i in rows], rows)
     ok = improves(new, torch.tensor([len(proposals[i]) for i in rows]), values[rows],
                   torch.tensor([len(programs[i]) for i in rows]), scorer.higher_is_better)
     for k in torch.nonzero(ok).flatten().tolist():
@@ -100,7 +100,7 @@ def top_down(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
     for i, p in enumerate(programs):
         if p:
             for node in space.nodes(p):
-                if node.boolean and node.parent >= 0:
+                if node.parent >= 0:
                     subprograms.append(space.standalone(p, node))
                     owner.append(i)
     if not subprograms:
