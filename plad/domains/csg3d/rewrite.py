@@ -24,11 +24,11 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from scipy import ndimage
 
 from plad.domains.csg3d.executor import EMPTY_PRIMITIVE, FULL_PRIMITIVE, pack, render_primitives
 from plad.domains.csg3d.tokens import N_PARAMS, OPERATORS, PARAM_MAX, PARAM_MIN, PRIMITIVES
 from plad.rewrite.bits import packed_iou
+from plad.rewrite.boxes import residual_boxes
 from plad.rewrite.space import Candidates, Node, RewriteSpace, Slot
 
 #: parameter steps of PO
@@ -51,54 +51,6 @@ def fit_box(lo: Sequence[int], hi: Sequence[int]) -> list[int]:
         c.append(center)
         d.append(min(max(2 * half + 1, PARAM_MIN), PARAM_MAX))
     return c + d
-
-
-def _prefix_sums(mask: np.ndarray) -> np.ndarray:
-    """(33, 33, 33) int64 summed-volume table: entry [i, j, k] counts mask[:i, :j, :k]."""
-    out = np.zeros(tuple(n + 1 for n in mask.shape), dtype=np.int64)
-    out[1:, 1:, 1:] = mask.cumsum(0).cumsum(1).cumsum(2)
-    return out
-
-
-def _box_sum(sums: np.ndarray, lo: Sequence[int], hi: Sequence[int]) -> int:
-    """Mask voxels in the box lo..hi (inclusive) from the summed-volume table."""
-    (a0, a1, a2), (b0, b1, b2) = lo, (hi[0] + 1, hi[1] + 1, hi[2] + 1)
-    return int(sums[b0, b1, b2] - sums[a0, b1, b2] - sums[b0, a1, b2] - sums[b0, b1, a2]
-               + sums[a0, a1, b2] + sums[a0, b1, a2] + sums[b0, a1, a2] - sums[a0, a1, a2])
-
-
-def grow_box(sums: np.ndarray, seed: Sequence[int]) -> tuple[list[int], list[int]]:
-    """Grow a box from ``seed`` one face at a time while the new slab lies entirely in the mask.
-
-    ``sums``: the mask's summed-volume table. At each step the face whose slab
-    adds the most voxels grows. Returns (lo, hi), inclusive voxel bounds.
-    """
-    size = sums.shape[0] - 1
-    lo, hi = [int(v) for v in seed], [int(v) for v in seed]
-    while True:
-        best, best_gain = None, 0
-        for axis in range(3):
-            for side in (-1, 1):
-                a, b = list(lo), list(hi)
-                if side < 0:
-                    if lo[axis] == 0:
-                        continue
-                    a[axis] = b[axis] = lo[axis] - 1
-                else:
-                    if hi[axis] == size - 1:
-                        continue
-                    a[axis] = b[axis] = hi[axis] + 1
-                slab = _box_sum(sums, a, b)
-                volume = (b[0] - a[0] + 1) * (b[1] - a[1] + 1) * (b[2] - a[2] + 1)
-                if slab == volume and slab > best_gain:
-                    best, best_gain = (axis, side), slab
-        if best is None:
-            return lo, hi
-        axis, side = best
-        if side < 0:
-            lo[axis] -= 1
-        else:
-            hi[axis] += 1
 
 
 class CSG3DRewrite(RewriteSpace):
@@ -139,26 +91,6 @@ class CSG3DRewrite(RewriteSpace):
         return out
 
     # ---- insertion ---------------------------------------------------------------------------
-    def _boxes(self, mask: np.ndarray) -> list[list[int]]:
-        """Boxes for the ``COMPONENTS`` largest 6-connected components of a (32, 32, 32) bool mask:
-        each component's bounding box and the box grown inside it from its deepest voxel."""
-        labels, n = ndimage.label(mask)
-        if n == 0:
-            return []
-        sizes = np.bincount(labels.ravel())[1:]
-        slices = ndimage.find_objects(labels)
-        depth = ndimage.distance_transform_cdt(mask, metric="taxicab")
-        sums = _prefix_sums(mask)
-        out = []
-        for k in np.argsort(-sizes, kind="stable")[:COMPONENTS]:
-            sl = slices[k]
-            out.append(fit_box([s.start for s in sl], [s.stop - 1 for s in sl]))
-            inside = np.where(labels[sl] == k + 1, depth[sl], -1)
-            seed = np.add(np.unravel_index(int(inside.argmax()), inside.shape), [s.start for s in sl])
-            lo, hi = grow_box(sums, seed)
-            out.append(fit_box(lo, hi))
-        return out
-
     def insertions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
                    targets: torch.Tensor) -> Candidates:
         rows, owner = [], []
@@ -169,8 +101,8 @@ class CSG3DRewrite(RewriteSpace):
             for op, mask in (("union", tgt_np[i] & ~out_np[i]), ("diff", out_np[i] & ~tgt_np[i])):
                 if not p and op == "diff":
                     continue
-                for box in self._boxes(mask):
-                    params = [self.num[v] for v in box]
+                for lo, hi in residual_boxes(mask, COMPONENTS):
+                    params = [self.num[v] for v in fit_box(lo, hi)]
                     for prim in PRIMITIVES:
                         new = [self.prim[prim]] + params
                         rows.append([self.op[op]] + list(p) + new if p else new)

@@ -13,7 +13,7 @@ What the discretized grammar allows (``START h (Cuboid l h w MOVES [SYM])+ END``
   (removing a part would renumber the references of the later ones).
 * Insertion, from the residual (target voxels the program misses; the
   language has no difference): for each of the largest missed components, a
-  part whose dimensions are those of the largest box grown inside it (:func:`plad.domains.csg3d.rewrite.grow_box`),
+  part whose dimensions are those of the largest box grown inside it (:func:`plad.rewrite.boxes.residual_boxes`),
   attached by one ``Attach`` to the bbox or to a declared cuboid. For every
   (cuboid, face) the in-face points that bring the part's center closest to
   the box's center are found in closed form over the 9 x 9 x 9 x 9 grid (a
@@ -30,11 +30,10 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from scipy import ndimage
 
-from plad.domains.csg3d.rewrite import _prefix_sums, grow_box
 from plad.domains.shapeassembly.execute import BlockState, ExecutionError
 from plad.domains.shapeassembly.tokens import FACE_TOKENS, FPOS, MAX_CUBOIDS, RES, attach_points, to_statements
+from plad.rewrite.boxes import residual_boxes
 from plad.rewrite.space import Candidates, RewriteSpace, Slot
 
 LOCAL_STEPS = (-2, -1, 1, 2)
@@ -146,27 +145,6 @@ class ShapeAssemblyRewrite(RewriteSpace):
         out.sort(key=lambda x: x[0])
         return out
 
-    def _boxes(self, mask: np.ndarray) -> list[tuple[list[int], list[int]]]:
-        """(lo, hi) voxel bounds of the box grown inside each of the largest missed components.
-
-        Not their bounding boxes: parts only add voxels, so a part that covers
-        more than the target (a chair's bounding box) can never be repaired.
-        """
-        labels, n = ndimage.label(mask)
-        if n == 0:
-            return []
-        sizes = np.bincount(labels.ravel())[1:]
-        slices = ndimage.find_objects(labels)
-        depth = ndimage.distance_transform_cdt(mask, metric="taxicab")
-        sums = _prefix_sums(mask)
-        out = []
-        for k in np.argsort(-sizes, kind="stable")[:COMPONENTS]:
-            sl = slices[k]
-            inside = np.where(labels[sl] == k + 1, depth[sl], -1)
-            seed = np.add(np.unravel_index(int(inside.argmax()), inside.shape), [s.start for s in sl])
-            out.append(grow_box(sums, seed))
-        return out
-
     def insertions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
                    targets: torch.Tensor) -> Candidates:
         rows, owner = [], []
@@ -188,7 +166,10 @@ class ShapeAssemblyRewrite(RewriteSpace):
                 h = int(np.clip(round(ys[-1] - ys[0] + 1), 1, RES - 1))
                 head = ["START", str(h)]
                 cuboids = [("bbox", np.zeros(3), np.eye(3), np.array([1.0, h / RES, 1.0]))]
-            for lo, hi in self._boxes(tgt_np[i] & ~out_np[i]):
+            # boxes grown inside the missed components, not their bounding boxes: parts only
+            # add voxels, so a part covering more than the target (e.g. a chair's bounding
+            # box) could never be repaired
+            for lo, hi in residual_boxes(tgt_np[i] & ~out_np[i], COMPONENTS, bounding=False):
                 lo_w = np.asarray(lo) / RES - 0.5                 # voxel i spans [i/32 - .5, (i+1)/32 - .5]
                 hi_w = (np.asarray(hi) + 1) / RES - 0.5
                 size = np.clip(np.round((hi_w - lo_w) * RES), 1, RES - 1)
