@@ -42,6 +42,10 @@ def test_residual_boxes_bound_and_grow_inside_components():
     assert boxes[2] == boxes[3] == ([20, 20, 20], [22, 22, 22])
     assert residual_boxes(mask, components=1, bounding=False) == [boxes[1]]
     assert residual_boxes(np.zeros_like(mask), components=2) == []
+    # more grown boxes: the next seed is the deepest voxel the first box leaves uncovered (the bar),
+    # and the box grows from it through the whole mask; a component that is covered stops early
+    assert residual_boxes(mask, components=2, bounding=False, grown=3) == [
+        boxes[1], ([4, 3, 1], [5, 4, 11]), boxes[3]]
     assert grow_box(prefix_sums(mask), (21, 21, 21)) == ([20, 20, 20], [22, 22, 22])
 
 

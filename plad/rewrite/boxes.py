@@ -62,10 +62,12 @@ def grow_box(sums: np.ndarray, seed: Sequence[int]) -> tuple[list[int], list[int
             hi[axis] += 1
 
 
-def residual_boxes(mask: np.ndarray, components: int, bounding: bool = True) -> list[tuple[list[int], list[int]]]:
+def residual_boxes(mask: np.ndarray, components: int, bounding: bool = True, grown: int = 1,
+                   ) -> list[tuple[list[int], list[int]]]:
     """(lo, hi) inclusive voxel bounds for the ``components`` largest 6-connected components of a
-    3D bool mask, largest first: each component's bounding box (if ``bounding``), then the box
-    grown inside it from its deepest voxel (taxicab distance to the component's outside)."""
+    3D bool mask, largest first: each component's bounding box (if ``bounding``), then up to
+    ``grown`` boxes grown inside it, each from the deepest voxel (taxicab distance to the mask's
+    outside) that the boxes grown before do not cover."""
     labels, n = ndimage.label(mask)
     if n == 0:
         return []
@@ -79,7 +81,13 @@ def residual_boxes(mask: np.ndarray, components: int, bounding: bool = True) -> 
         start = [s.start for s in sl]
         if bounding:
             out.append((start, [s.stop - 1 for s in sl]))
-        inside = np.where(labels[sl] == k + 1, depth[sl], -1)
-        seed = np.add(np.unravel_index(int(inside.argmax()), inside.shape), start)
-        out.append(grow_box(sums, seed))
+        left = labels[sl] == k + 1                       # component voxels no grown box covers yet
+        for _ in range(grown):
+            if not left.any():
+                break
+            inside = np.where(left, depth[sl], -1)
+            seed = np.add(np.unravel_index(int(inside.argmax()), inside.shape), start)
+            lo, hi = grow_box(sums, seed)
+            out.append((lo, hi))
+            left[tuple(slice(max(a - s, 0), max(b + 1 - s, 0)) for a, b, s in zip(lo, hi, start))] = False
     return out

@@ -13,7 +13,9 @@ What the discretized grammar allows (``START h (Cuboid l h w MOVES [SYM])+ END``
   (removing a part would renumber the references of the later ones).
 * Insertion, from the residual (target voxels the program misses; the
   language has no difference): for each of the largest missed components, a
-  part whose dimensions are those of the largest box grown inside it (:func:`plad.rewrite.boxes.residual_boxes`),
+  part whose dimensions are those of a box grown inside it (three boxes from
+  three seeds: the deepest voxel, then the deepest ones the earlier boxes
+  leave uncovered) (:func:`plad.rewrite.boxes.residual_boxes`),
   attached by one ``Attach`` to the bbox or to a declared cuboid. For every
   (cuboid, face) the in-face points that bring the part's center closest to
   the box's center are found in closed form over the 9 x 9 x 9 x 9 grid (a
@@ -40,8 +42,9 @@ LOCAL_STEPS = (-2, -1, 1, 2)
 WIDE_STEPS = (-8, -4, -2, -1, 1, 2, 4, 8)
 LOCAL_FPOS = ((-1, 0), (1, 0), (0, -1), (0, 1))
 WIDE_FPOS = tuple((di, dj) for di in range(-2, 3) for dj in range(-2, 3) if (di, dj) != (0, 0))
-#: missed-voxel components proposed per insertion, and placements per box
+#: missed-voxel components proposed per insertion, boxes grown in each, and placements per box
 COMPONENTS = 2
+GROWN = 3
 PLACEMENTS = 2
 _GRID = np.array(list(FPOS), dtype=np.float64) / 10.0
 _FACE_AXIS = {"left": 0, "right": 0, "bot": 1, "top": 1, "back": 2, "front": 2}
@@ -169,7 +172,7 @@ class ShapeAssemblyRewrite(RewriteSpace):
             # boxes grown inside the missed components, not their bounding boxes: parts only
             # add voxels, so a part covering more than the target (e.g. a chair's bounding
             # box) could never be repaired
-            for lo, hi in residual_boxes(tgt_np[i] & ~out_np[i], COMPONENTS, bounding=False):
+            for lo, hi in residual_boxes(tgt_np[i] & ~out_np[i], COMPONENTS, bounding=False, grown=GROWN):
                 lo_w = np.asarray(lo) / RES - 0.5                 # voxel i spans [i/32 - .5, (i+1)/32 - .5]
                 hi_w = (np.asarray(hi) + 1) / RES - 0.5
                 size = np.clip(np.round((hi_w - lo_w) * RES), 1, RES - 1)
