@@ -5,6 +5,8 @@
     plad score DOMAIN --pred pred.npy --target target.npy
     plad data check | download
     plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/
+    plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
+    plad search DOMAIN shape.npy --set insertions=8
     plad models
 
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
@@ -174,6 +176,95 @@ def cmd_infer(args: argparse.Namespace) -> int:
     return 2 if failed else 0
 
 
+def _program_text(text: str) -> str:
+    """A program given on the command line, or the text of a .txt file holding it."""
+    if Path(text).suffix == ".txt" and Path(text).is_file():
+        return Path(text).read_text()
+    return text
+
+
+def _search_setup(domain_name: str, overrides: list[str]):
+    """(domain, search configuration with ``--set KEY=VALUE`` overrides)."""
+    import yaml
+
+    from plad.config import ConfigError
+    from plad.domains import get_domain
+    from plad.rewrite import search_config
+
+    domain = get_domain(domain_name)
+    if domain.rewrite is None:
+        raise UsageError(f"the {domain_name} domain has no search support")
+    values = {}
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            values[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise UsageError(f"--set {item!r}: value is not valid YAML") from None
+    try:
+        return domain, search_config(domain, **values)
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    """Rewrite a program towards a target shape; never returns a worse program."""
+    import torch
+
+    from plad.fsutil import atomic_write_text
+    from plad.rewrite import refine
+    from plad.rewrite.evaluate import Scorer
+
+    domain, cfg = _search_setup(args.domain, args.set)
+    ids = domain.parse(_program_text(args.program))
+    target = load_shapes(Path(args.target), domain.shape)
+    if len(target) != 1:
+        raise UsageError(f"{args.target} holds {len(target)} shapes; refine takes one target shape")
+    target = torch.from_numpy(target)
+    before = float(Scorer(domain, target).values([ids])[0])
+    result = refine(domain, [ids], target, cfg.refine)
+    text = domain.format(result.programs[0])
+    print(text)
+    if args.output:
+        atomic_write_text(Path(args.output), text + "\n")
+    print(f"refined in {result.seconds:.1f} s", file=sys.stderr)
+    print(f"{domain.metric.name} {before:.6f} -> {float(result.values[0]):.6f}")
+    return 0
+
+
+def cmd_search(args: argparse.Namespace) -> int:
+    """Search from scratch (no network) for programs of the shapes in a file."""
+    import torch
+
+    from plad.fsutil import atomic_write_text
+    from plad.rewrite import search
+
+    domain, cfg = _search_setup(args.domain, args.set)
+    targets = load_shapes(Path(args.file), domain.shape)
+    result = search(domain, torch.from_numpy(targets), cfg)
+    failed = 0
+    lines = []
+    for i, (ids, value) in enumerate(zip(result.programs, result.values.tolist())):
+        where = args.file if len(targets) == 1 else f"{args.file} [{i}]"
+        if not ids:
+            failed += 1
+            print(f"plad: error: {where}: no program scores better than the empty one (is the shape empty?)",
+                  file=sys.stderr)
+            lines.append("")
+            continue
+        lines.append(domain.format(ids))
+        print(lines[-1])
+        print(f"{domain.metric.name} {value:.6f}")
+    if len(targets) > 1:
+        print(f"mean {result.values.mean().item():.6f}")
+    if args.output:
+        atomic_write_text(Path(args.output), "\n".join(lines) + "\n")
+    print(f"searched {len(targets)} shape(s) in {result.seconds:.1f} s", file=sys.stderr)
+    return 2 if failed else 0
+
+
 def cmd_models(args: argparse.Namespace) -> int:
     from plad.tracking import registered_models, tracking_uri
 
@@ -231,6 +322,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
     p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
     p.set_defaults(func=cmd_infer)
+
+    p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("program", help="program text (or a .txt file holding it)")
+    p.add_argument("--target", required=True, help="the target shape: .png or .npy, as for plad score")
+    p.add_argument("-o", "--output", help="also write the refined program's text to this file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="search setting, e.g. refine.rounds=5 or refine.wide=false (repeatable)")
+    p.set_defaults(func=cmd_refine)
+
+    p = sub.add_parser("search", help="search for programs of shapes from scratch, without a network")
+    p.add_argument("domain", choices=domain_names())
+    p.add_argument("file", help="target shape(s): .png or .npy (N, *shape), as for plad score")
+    p.add_argument("-o", "--output", help="also write the programs, one per line, to this file")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="search setting, e.g. insertions=5 or refine.rounds=1 (repeatable)")
+    p.set_defaults(func=cmd_search)
 
     p = sub.add_parser("models", help="list the registered models (MLflow registry) with their test metric")
     p.set_defaults(func=cmd_models)

@@ -18,6 +18,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,6 +28,8 @@ from plad.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
 
 _NONE: Mapping[str, float] = MappingProxyType({})
+if TYPE_CHECKING:  # pragma: no cover
+    from plad.rewrite.space import RewriteSpace
 
 
 class Domain(abc.ABC):
@@ -38,6 +41,9 @@ class Domain(abc.ABC):
     shape: tuple[int, ...]
     #: the domain's reconstruction metric (declares whether higher is better)
     metric: Metric
+    #: optional: program rewriting and search support (the moves, program structure and
+    #: candidate generators of :mod:`plad.rewrite`); None: the domain has no search support
+    rewrite: RewriteSpace | None = None
 
     # -- how results are shown (optional) ---------------------------------------------------
     #: name in tables and figures, e.g. ``"2D CSG"``; default: the registry name

@@ -3,6 +3,7 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -50,15 +51,42 @@ class Metric:
         return values.max(dim=dim) if self.higher_is_better else values.min(dim=dim)
 
 
+_LANES8 = 0x00FF00FF00FF00FF
+_LANES16 = 0x0000FFFF0000FFFF
+_CHUNK_WORDS = 255  # int64 words summed before a byte lane could carry into the next
+
+
+def count_true(flags: torch.Tensor) -> torch.Tensor:
+    """Number of True entries per row of a bool (N, M) tensor -> int64 (N,).
+
+    Same as ``flags.sum(1)``, about 20 times faster on the CPU: torch sums bool
+    and uint8 tensors element by element (~0.2 ns/byte here), but int64 ones at
+    memory speed. A bool is one byte holding 0 or 1, so each int64 word of the
+    row holds 8 byte lanes; summing at most 255 words cannot carry across
+    lanes, and the lanes are then folded into 16- and 32-bit lanes (SWAR).
+    """
+    n = flags.shape[0]
+    words = flags.reshape(n, math.prod(flags.shape[1:]))
+    pad = (-words.shape[1]) % (8 * _CHUNK_WORDS)
+    if pad:
+        words = torch.nn.functional.pad(words, (0, pad))
+    w = words.contiguous().view(torch.int64).view(n, words.shape[1] // (8 * _CHUNK_WORDS), _CHUNK_WORDS)
+    s = w.sum(2)                                           # (n, chunks): byte lanes <= 255
+    s = (s & _LANES8) + ((s >> 8) & _LANES8)               # 16-bit lanes <= 510
+    s = (s & _LANES16) + ((s >> 16) & _LANES16)            # 32-bit lanes <= 1020
+    s = s.sum(1)                                           # 32-bit lanes <= 1020 * chunks
+    return (s & 0xFFFFFFFF) + (s >> 32)
+
+
 def iou(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Volumetric/areal IoU of bool tensors (N, *shape) -> float64 (N,).
 
     Two empty shapes are identical: IoU 1.
     """
-    p = pred.reshape(pred.shape[0], -1)
-    t = target.reshape(target.shape[0], -1)
-    inter = (p & t).sum(dim=1).double()
-    union = (p | t).sum(dim=1).double()
+    p = pred.reshape(pred.shape[0], -1).to(torch.bool)
+    t = target.reshape(target.shape[0], -1).to(torch.bool)
+    inter = count_true(p & t).double()
+    union = count_true(p | t).double()
     return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
 
 
@@ -71,4 +99,4 @@ def chamfer_metric() -> Metric:
                   prepare=TargetFeatures.of, against=chamfer_against)
 
 
-__all__ = ["IOU", "Metric", "chamfer_metric", "iou"]
+__all__ = ["IOU", "Metric", "chamfer_metric", "count_true", "iou"]

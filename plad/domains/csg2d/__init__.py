@@ -42,6 +42,13 @@ class CSG2D(Domain):
     def executor(self) -> Executor:
         return Executor(self.tokens)
 
+    @cached_property
+    def rewrite(self):  # type: ignore[override]
+        """Search support: PO over draw tokens, pruning of the postfix tree, insertion at the root."""
+        from plad.domains.csg2d.rewrite import CSG2DRewrite
+
+        return CSG2DRewrite(self)
+
     def parse(self, text: str) -> list[int]:
         return parse(text)
 

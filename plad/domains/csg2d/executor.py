@@ -74,6 +74,27 @@ class Executor:
             self._dev[device] = {k: v.to(device) for k, v in self._cpu.items()}
         return self._dev[device]
 
+    def extended(self, canvases: torch.Tensor) -> Executor:
+        """A copy that also draws ``canvases`` (K, 64, 64) bool as pseudo draw tokens V .. V+K-1.
+
+        The pseudo tokens are not in the vocabulary; rewriting uses an empty and
+        a full canvas to find how a program's output depends on one of its draws.
+        """
+        out = object.__new__(Executor)
+        out.table, out.max_stack = self.table, self.max_stack
+        K = canvases.shape[0]
+        c = self._cpu
+        out._cpu = {"kind": torch.cat([c["kind"], torch.full((K,), _DRAW, dtype=torch.long)]),
+                    "masks": torch.cat([c["masks"], torch.zeros(K, 2, dtype=torch.long)]),
+                    "bitmaps": torch.cat([c["bitmaps"], pack(canvases)])}
+        out._dev = {}
+        return out
+
+    @property
+    def packed_bitmaps(self) -> torch.Tensor:
+        """(V, 64) int64: the rendered vocabulary, bit-packed (zero rows for non-draw tokens)."""
+        return self._cpu["bitmaps"]
+
     @property
     def bitmaps(self) -> torch.Tensor:
         """(V, 64, 64) bool: the rendered vocabulary (all-False rows for non-draw tokens)."""

@@ -48,6 +48,13 @@ class CSG3D(Domain):
     def executor(self) -> Executor:
         return Executor(self.tokens)
 
+    @cached_property
+    def rewrite(self):  # type: ignore[override]
+        """Search support: PO over parameters, pruning of the prefix tree, boxes from the residual."""
+        from plad.domains.csg3d.rewrite import CSG3DRewrite
+
+        return CSG3DRewrite(self)
+
     def parse(self, text: str) -> list[int]:
         return parse(text)
 

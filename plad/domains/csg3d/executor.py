@@ -103,13 +103,17 @@ def pack(grids: torch.Tensor) -> torch.Tensor:
 
 
 _TABLES: dict[torch.device, dict[str, torch.Tensor]] = {}
+#: Pseudo primitive tokens after the vocabulary (ids V and V + 1), used by rewriting to find
+#: how a program's output depends on one of its primitives: they take six parameters like a
+#: primitive, and draw the empty and the full grid whatever the parameters.
+EMPTY_PRIMITIVE, FULL_PRIMITIVE = len(token_table()), len(token_table()) + 1
 
 
 def _tables(device: torch.device) -> dict[str, torch.Tensor]:
     """Per-device lookup tables (built lazily: nothing touches CUDA at import)."""
     if device not in _TABLES:
         table = token_table()
-        V = len(table)
+        V = len(table) + 2                           # the vocabulary and the two pseudo primitives
         delta = torch.zeros(V, dtype=torch.long)     # change of the open-argument counter
         code = torch.zeros(V, dtype=torch.long)      # step code of structural tokens
         value = torch.zeros(V, dtype=torch.long)     # integer value of number tokens
@@ -122,13 +126,16 @@ def _tables(device: torch.device) -> dict[str, torch.Tensor]:
                 delta[v], code[v] = 1, codes[t.name]
             else:
                 delta[v], value[v] = -1, t.params[0]
+        fixed = torch.zeros(V, dtype=torch.long)     # 1: draws the empty grid, 2: the full grid
+        for v, f in ((EMPTY_PRIMITIVE, 1), (FULL_PRIMITIVE, 2)):
+            delta[v], code[v], fixed[v] = N_PARAMS - 1, _PRIM, f
         # with A the top (first operand) and B below it, every operator is
         # (A & (B ^ X)) | (B & Y): union X=Y=-1, intersection X=Y=0, difference X=-1, Y=0
         xy = torch.zeros(_DIFF + 1, 2, dtype=torch.int32)
         xy[_UNION] = torch.tensor([-1, -1], dtype=torch.int32)
         xy[_DIFF] = torch.tensor([-1, 0], dtype=torch.int32)
         _TABLES[device] = {k: x.to(device) for k, x in dict(
-            delta=delta, code=code, value=value, ell=ell, xy=xy,
+            delta=delta, code=code, value=value, ell=ell, xy=xy, fixed=fixed,
             interval=_as_int32(_interval_lut()).reshape(-1),
             column=_as_int32(_column_lut()).reshape(-1)).items()}
     return _TABLES[device]
@@ -219,6 +226,10 @@ class Executor:
         idx = (cols[:, None] + torch.arange(1, N_PARAMS + 1, device=dev)).clamp(max=L - 1)
         params = T["value"][programs[rows[:, None], idx]]                 # (P, 6)
         prims = render_primitives(params, T["ell"][programs[rows, cols]]).reshape(-1, _WORDS)
+        fixed = T["fixed"][programs[rows, cols]]
+        if bool((fixed > 0).any()):
+            prims[fixed == 1] = 0
+            prims[fixed == 2] = -1
         # structural tokens right to left: step s of a row is its s-th structural token from the end.
         # Rows are sorted by step count, longest first, so the rows still running at step s are a
         # prefix of the batch and each step only touches those.

@@ -70,6 +70,13 @@ class ShapeAssembly(Domain):
     def _end(self) -> int:
         return self.tokens.index("END")
 
+    @cached_property
+    def rewrite(self):  # type: ignore[override]
+        """Search support: PO over the discretized arguments, parts placed where targets are missed."""
+        from plad.domains.shapeassembly.rewrite import ShapeAssemblyRewrite
+
+        return ShapeAssemblyRewrite(self)
+
     def parse(self, text: str) -> list[int]:
         return parse(text)
 

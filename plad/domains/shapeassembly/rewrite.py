@@ -1,0 +1,186 @@
+"""ShapeAssembly's rewriting moves (:class:`plad.rewrite.space.RewriteSpace`).
+
+What the discretized grammar allows (``START h (Cuboid l h w MOVES [SYM])+ END``):
+
+* PO blocks: the bbox height (``START h``), then one block per part, in
+  token order: its dimensions and every argument of its moves and symmetry.
+  Numbers move by +-1, +-2 (``wide``: also +-4, +-8) within 1..31; an in-face
+  point ``fpos_i_j`` moves one grid step in i or j (``wide``: also two steps
+  and diagonally); a reflect/translate axis and a copy count may take any
+  other value; with ``wide`` also a face, and a reference any other cuboid
+  the part may attach to (the bbox or an earlier cuboid).
+* No expression tree: parts are not boolean operands, so there is no pruning
+  (removing a part would renumber the references of the later ones).
+* Insertion, from the residual (target voxels the program misses; the
+  language has no difference): for each of the largest missed components, a
+  part whose dimensions are those of a box grown inside it (three boxes from
+  three seeds: the deepest voxel, then the deepest ones the earlier boxes
+  leave uncovered) (:func:`plad.rewrite.boxes.residual_boxes`),
+  attached by one ``Attach`` to the bbox or to a declared cuboid. For every
+  (cuboid, face) the in-face points that bring the part's center closest to
+  the box's center are found in closed form over the 9 x 9 x 9 x 9 grid (a
+  first attach only translates the part: center = target point - mover
+  offset); the closest placements are proposed, each also followed by
+  ``Reflect X`` and ``Reflect Z`` (left/right and front/back symmetry). From
+  the empty program the bbox height comes from the target's vertical extent.
+* No screen: execution (a Python interpreter, ~2 ms a program) dominates,
+  and every candidate is scored exactly.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from plad.datasets.partnet.execute import BlockState, ExecutionError
+from plad.domains.shapeassembly.tokens import FACE_TOKENS, FPOS, MAX_CUBOIDS, RES, attach_points, to_statements
+from plad.rewrite.boxes import residual_boxes
+from plad.rewrite.space import Candidates, RewriteSpace, Slot
+
+LOCAL_STEPS = (-2, -1, 1, 2)
+WIDE_STEPS = (-8, -4, -2, -1, 1, 2, 4, 8)
+LOCAL_FPOS = ((-1, 0), (1, 0), (0, -1), (0, 1))
+WIDE_FPOS = tuple((di, dj) for di in range(-2, 3) for dj in range(-2, 3) if (di, dj) != (0, 0))
+#: missed-voxel components proposed per insertion, boxes grown in each, and placements per box
+COMPONENTS = 2
+GROWN = 3
+PLACEMENTS = 2
+_GRID = np.array(list(FPOS), dtype=np.float64) / 10.0
+_FACE_AXIS = {"left": 0, "right": 0, "bot": 1, "top": 1, "back": 2, "front": 2}
+
+
+class ShapeAssemblyRewrite(RewriteSpace):
+    screen_keep = None
+    search_defaults = {"insertions": MAX_CUBOIDS, "tune_sweeps": 4,
+                       "refine": {"rounds": 1, "po_sweeps": 2, "wide": False, "insert": False}}
+
+    def __init__(self, domain):
+        super().__init__(domain)
+        table = domain.tokens
+        self.table = table
+        self.kind = [t.kind for t in table.tokens]
+        self.params = [t.params for t in table.tokens]
+        self.id = {t.name: i for i, t in enumerate(table.tokens)}
+        self.max_len = table.max_len
+
+    # ---- PO -------------------------------------------------------------------------------
+    def _num(self, v: int, wide: bool) -> tuple[int, ...]:
+        return tuple(self.id[str(v + s)] for s in (WIDE_STEPS if wide else LOCAL_STEPS) if 1 <= v + s <= RES - 1)
+
+    def _fpos(self, i: int, j: int, wide: bool) -> tuple[int, ...]:
+        return tuple(self.id[f"fpos_{i + a}_{j + b}"] for a, b in (WIDE_FPOS if wide else LOCAL_FPOS)
+                     if i + a in FPOS and j + b in FPOS)
+
+    def _slot(self, pos: int, token: int, mover: int, wide: bool) -> Slot | None:
+        kind, params = self.kind[token], self.params[token]
+        if kind == "num":
+            choices = self._num(params[0], wide)
+        elif kind == "fpos":
+            choices = self._fpos(params[0], params[1], wide)
+        elif kind in ("axis", "snum"):
+            choices = tuple(i for i, k in enumerate(self.kind) if k == kind and i != token)
+        elif kind == "face" and wide:
+            choices = tuple(self.id[f] for f in FACE_TOKENS if self.id[f] != token)
+        elif kind == "cind" and wide:
+            refs = ["bbox"] + [f"cube{j}" for j in range(mover)]
+            choices = tuple(self.id[r] for r in refs if self.id[r] != token)
+        else:
+            return None
+        return Slot(pos, choices) if choices else None
+
+    def blocks(self, program: Sequence[int], wide: bool) -> list[list[Slot]]:
+        out: list[list[Slot]] = []
+        mover = -1
+        for pos, token in enumerate(program):
+            kind = self.kind[token]
+            if kind == "start":
+                out.append([])
+            elif kind == "cuboid":
+                mover += 1
+                out.append([])
+            elif kind == "end":
+                break
+            elif out:
+                slot = self._slot(pos, token, mover, wide)
+                if slot is not None:
+                    out[-1].append(slot)
+        return [b for b in out if b]
+
+    # ---- insertion ---------------------------------------------------------------------------
+    def _cuboids(self, program: Sequence[int]) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+        """(reference name, center, axes (rows), dims) of the bbox and each declared cuboid, as executed."""
+        stmts = to_statements(program)
+        state = BlockState(stmts[0].args[1], False, lambda parent, i: f"{parent}_ref" if i is None
+                           else f"{parent}_trans_{i}")
+        state.run(stmts)
+        names = ["bbox"] + [n for n in state.cuboids if n.startswith("cube") and "_" not in n]
+        return [(n, state.cuboids[n].pos.astype(np.float64), state.cuboids[n].axes.astype(np.float64),
+                 state.cuboids[n].dims.astype(np.float64)) for n in names]
+
+    def _placements(self, cuboids, dims: np.ndarray, center: np.ndarray) -> list[tuple[float, list[str]]]:
+        """(distance to ``center``, Attach tokens) of the best in-face points of every (cuboid, face), best first.
+
+        A first attach translates the (unrotated) part so that its point q1 meets
+        the target's point q2: center = world_target(q2) - (q1 - 0.5) * dims. The
+        two in-face coordinates act on their own axes (exactly so for an
+        axis-aligned target), so each is chosen over its 9 x 9 (mover, target)
+        values separately.
+        """
+        out = []
+        for name, pos, axes, bdims in cuboids:
+            for face in FACE_TOKENS:
+                axis = _FACE_AXIS[face]
+                q1, q2 = attach_points(face, name == "bbox", (0.5, 0.5), (0.5, 0.5))
+                # error of the placement with both in-face points at the face centers
+                resid = pos + ((np.array(q2) - 0.5) * bdims) @ axes - (np.array(q1) - 0.5) * dims - center
+                choice = []
+                for a in (b for b in range(3) if b != axis):
+                    shift = np.repeat(((_GRID - 0.5) * bdims[a])[:, None] * axes[a][None, :], 9, 0)
+                    shift = shift.reshape(9, 9, 3).transpose(1, 0, 2).copy()       # [i1, i2]: target move by i2
+                    shift[:, :, a] -= ((_GRID - 0.5) * dims[a])[:, None]            # minus the mover's offset by i1
+                    cost = np.linalg.norm(resid + shift, axis=2)
+                    i1, i2 = np.unravel_index(int(cost.argmin()), cost.shape)
+                    resid = resid + shift[i1, i2]
+                    choice.append((FPOS[i1], FPOS[i2]))
+                (m1, t1), (m2, t2) = choice
+                out.append((float(np.linalg.norm(resid)), ["Attach", name, face, f"fpos_{m1}_{m2}", f"fpos_{t1}_{t2}"]))
+        out.sort(key=lambda x: x[0])
+        return out
+
+    def insertions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
+                   targets: torch.Tensor) -> Candidates:
+        rows, owner = [], []
+        out_np, tgt_np = outputs.numpy(), targets.numpy()
+        for i, p in enumerate(programs):
+            if p:
+                declared = sum(self.kind[t] == "cuboid" for t in p)
+                if declared >= MAX_CUBOIDS:
+                    continue
+                head = [self.table.tokens[t].name for t in p[:-1]]
+                try:
+                    cuboids = self._cuboids(p)
+                except ExecutionError:
+                    continue
+            else:
+                ys = np.nonzero(tgt_np[i].any(axis=(0, 2)))[0]
+                if not len(ys):
+                    continue
+                h = int(np.clip(round(ys[-1] - ys[0] + 1), 1, RES - 1))
+                head = ["START", str(h)]
+                cuboids = [("bbox", np.zeros(3), np.eye(3), np.array([1.0, h / RES, 1.0]))]
+            # boxes grown inside the missed components, not their bounding boxes: parts only
+            # add voxels, so a part covering more than the target (e.g. a chair's bounding
+            # box) could never be repaired
+            for lo, hi in residual_boxes(tgt_np[i] & ~out_np[i], COMPONENTS, bounding=False, grown=GROWN):
+                lo_w = np.asarray(lo) / RES - 0.5                 # voxel i spans [i/32 - .5, (i+1)/32 - .5]
+                hi_w = (np.asarray(hi) + 1) / RES - 0.5
+                size = np.clip(np.round((hi_w - lo_w) * RES), 1, RES - 1)
+                part = ["Cuboid"] + [str(int(v)) for v in size]
+                for _, attach in self._placements(cuboids, size / RES, (lo_w + hi_w) / 2)[:PLACEMENTS]:
+                    for sym in ([], ["Reflect", "X"], ["Reflect", "Z"]):
+                        names = head + part + attach + sym + ["END"]
+                        if len(names) <= self.max_len:
+                            rows.append([self.id[n] for n in names])
+                            owner.append(i)
+        return Candidates.from_lists(rows, owner)

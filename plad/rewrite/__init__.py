@@ -1,0 +1,13 @@
+"""Program rewriting and search, generic over domains.
+
+Rewriters (each batched over many programs, never returning a worse program):
+:mod:`.po` (parameter optimization by discrete coordinate descent),
+:mod:`.prune` (SIRI's pruning rules) and :mod:`.insert` (insertion of a
+primitive where the residual says it helps). :mod:`.driver` composes them:
+:func:`refine` from given programs, :func:`search` from scratch. A domain
+takes part by returning a :class:`~plad.rewrite.space.RewriteSpace` from its
+``rewrite`` member.
+"""
+from plad.rewrite.driver import RefineConfig, Result, SearchConfig, refine, search, search_config
+
+__all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

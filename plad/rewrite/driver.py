@@ -1,0 +1,178 @@
+"""Rewriting and search entry points: :func:`refine` (from given programs) and :func:`search` (from scratch).
+
+Both work on many shapes at once: the rewriters batch all candidates of all
+programs of a batch of shapes into single calls of the domain's executor and
+metric. ``refine`` repeats rounds of PO sweeps, pruning and one insertion
+until a round changes nothing; ``search`` starts from the empty program,
+inserts primitives greedily (each new primitive optionally tuned by PO on
+its own parameters), then refines. No step ever makes a program worse, and
+every returned value is re-executed and re-scored at the end.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import torch
+
+from plad.rewrite.evaluate import Scorer, Stats
+from plad.rewrite.insert import insert_tuned
+from plad.rewrite.po import optimize
+from plad.rewrite.prune import TOLERANCE, prune
+
+if TYPE_CHECKING:  # pragma: no cover
+    from plad.domains.base import Domain
+
+
+@dataclass
+class RefineConfig:
+    """Budget and moves of :func:`refine`."""
+
+    #: rounds of (PO sweeps, pruning, one insertion); stops early when a round changes nothing
+    rounds: int = 3
+    #: PO sweeps per round (a sweep tries every block once; stops early at a local optimum)
+    po_sweeps: int = 10
+    #: PO uses the domain's large choice sets (e.g. every draw token), else local neighbours only
+    wide: bool = True
+    prune: bool = True
+    #: try one insertion per round (then tune the inserted primitive)
+    insert: bool = True
+    #: PO sweeps over the inserted primitive's own block after an insertion
+    tune_sweeps: int = 10
+    #: seconds for one batch of shapes (no new step starts after it); null: no limit
+    time_limit: float | None = None
+    #: shapes processed together
+    batch: int = 256
+    #: use the domain's cheap screen before the exact metric (false: score every candidate exactly)
+    screen: bool = True
+
+
+@dataclass
+class SearchConfig:
+    """Search from scratch: greedy insertion, then :func:`refine`."""
+
+    #: greedy insertion steps from the empty program (fewer if the language's length cap is reached)
+    insertions: int = 12
+    #: PO sweeps over each inserted primitive's own block right after its insertion
+    tune_sweeps: int = 0
+    #: whether that tuning uses the large choice sets
+    tune_wide: bool = False
+    refine: RefineConfig = field(default_factory=RefineConfig)
+
+
+@dataclass
+class Result:
+    """Programs (token id lists), their exact values (B,) float64, seconds and where the time went."""
+
+    programs: list[list[int]]
+    values: torch.Tensor
+    seconds: float
+    stats: Stats
+
+
+def search_config(domain: Domain, **overrides) -> SearchConfig:
+    """The domain's default search configuration (its ``search_defaults``), with ``overrides``.
+
+    Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
+    """
+    from plad.config import build
+
+    raw: dict = {}
+    for source in (dict(domain.rewrite.search_defaults) if domain.rewrite else {}, overrides):
+        for key, value in source.items():
+            if key.startswith("refine."):
+                raw.setdefault("refine", {})[key.split(".", 1)[1]] = value
+            elif key == "refine":
+                raw.setdefault("refine", {}).update(value)
+            else:
+                raw[key] = value
+    return build(SearchConfig, raw, "search", source="search configuration")
+
+
+def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) -> torch.Tensor:
+    """Re-execute and re-score the final programs; the tracked values must agree exactly."""
+    again = scorer.values(programs)
+    if not torch.equal(again, values):
+        bad = int(torch.nonzero(again != values)[0, 0])
+        raise RuntimeError(f"re-scoring program {bad} gave {float(again[bad])}, tracked {float(values[bad])}: "
+                           f"the executor or metric is not deterministic")
+    return again
+
+
+def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: RefineConfig,
+                  deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
+    for _ in range(cfg.rounds):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        before = [list(p) for p in programs]
+        programs, values = optimize(scorer, programs, values, sweeps=cfg.po_sweeps, wide=cfg.wide, deadline=deadline)
+        if cfg.prune:
+            programs, values = prune(scorer, programs, values, TOLERANCE)
+        if cfg.insert:
+            programs, values, _ = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False, deadline=deadline)
+        if programs == before:
+            break
+    return programs, values
+
+
+def _batches(n: int, size: int):
+    for start in range(0, n, max(1, size)):
+        yield slice(start, min(n, start + max(1, size)))
+
+
+def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Tensor,
+           config: RefineConfig | None = None) -> Result:
+    """Rewrite each program towards its target (targets (B, *shape) bool); never returns a worse program.
+
+    An empty program (``[]``) is allowed: it scores the metric's worst value and
+    is grown by insertion.
+    """
+    cfg = config or RefineConfig()
+    start = time.perf_counter()
+    stats = Stats()
+    out_programs: list[list[int]] = []
+    out_values = []
+    for sl in _batches(len(programs), cfg.batch):
+        scorer = Scorer(domain, targets[sl], screen=cfg.screen)
+        batch = [list(p) for p in programs[sl]]
+        values = scorer.values(batch)
+        deadline = None if cfg.time_limit is None else time.perf_counter() + cfg.time_limit
+        batch, values = _refine_batch(scorer, batch, values, cfg, deadline)
+        out_values.append(_confirm(scorer, batch, values))
+        out_programs += batch
+        stats.add(scorer.stats)
+    values = torch.cat(out_values) if out_values else torch.zeros(0, dtype=torch.float64)
+    return Result(out_programs, values, time.perf_counter() - start, stats)
+
+
+def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
+    """Search from scratch for each target (B, *shape) bool: greedy insertion, then refinement."""
+    cfg = config or search_config(domain)
+    start = time.perf_counter()
+    stats = Stats()
+    out_programs: list[list[int]] = []
+    out_values = []
+    for sl in _batches(len(targets), cfg.refine.batch):
+        scorer = Scorer(domain, targets[sl], screen=cfg.refine.screen)
+        n = sl.stop - sl.start
+        programs: list[list[int]] = [[] for _ in range(n)]
+        values = scorer.values(programs)
+        deadline = None if cfg.refine.time_limit is None else time.perf_counter() + cfg.refine.time_limit
+        growing = list(range(n))
+        for _ in range(cfg.insertions):
+            if not growing or (deadline is not None and time.perf_counter() > deadline):
+                break
+            programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps, cfg.tune_wide,
+                                                      only=growing, deadline=deadline)
+            growing = torch.nonzero(inserted).flatten().tolist()
+        programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
+        out_values.append(_confirm(scorer, programs, values))
+        out_programs += programs
+        stats.add(scorer.stats)
+    values = torch.cat(out_values) if out_values else torch.zeros(0, dtype=torch.float64)
+    return Result(out_programs, values, time.perf_counter() - start, stats)
+
+
+__all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

@@ -1,0 +1,73 @@
+"""Insertion: add one primitive (or part) where the residual says it helps.
+
+The domain's candidate generator
+(:meth:`~plad.rewrite.space.RewriteSpace.insertions`) proposes, for every
+program, programs with one more primitive, from the program's execution and
+its target (e.g. every draw token with each operator; a box around the
+largest missed or extra region). All candidates of all programs are screened
+and scored in one batch; a program takes its best candidate only if it is
+strictly better (an insertion adds tokens, so a tie never wins).
+"""
+from __future__ import annotations
+
+import torch
+
+from plad.rewrite.evaluate import Scorer, improves
+from plad.rewrite.po import optimize
+
+
+def insert(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, only: list[int] | None = None,
+           force: bool = False) -> tuple[list[list[int]], torch.Tensor, torch.Tensor]:
+    """One insertion step for each program (or those in ``only``).
+
+    Returns (programs, values, inserted (B,) bool). With ``force`` a program
+    takes its best candidate even if it is worse (for a caller that tunes the
+    new primitive and then keeps the result only if it improves: :func:`insert_tuned`).
+    """
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    rows = list(range(len(programs))) if only is None else list(only)
+    inserted = torch.zeros(len(programs), dtype=torch.bool)
+    if not rows:
+        return programs, values, inserted
+    outputs = scorer.outputs([programs[i] for i in rows])
+    cands = scorer.space.insertions([programs[i] for i in rows], outputs, scorer.targets[rows])
+    if not len(cands):
+        return programs, values, inserted
+    cands.owner = torch.as_tensor(rows, dtype=torch.long)[cands.owner]   # back to indices of ``programs``
+    best, best_values = scorer.best(cands, len(programs))
+    lengths = torch.tensor([len(p) for p in programs])
+    has = best >= 0
+    new_len = torch.where(has, cands.lengths[best.clamp(min=0)], lengths)
+    ok = has & (force | improves(best_values, new_len, values, lengths, scorer.higher_is_better))
+    for i in torch.nonzero(ok).flatten().tolist():
+        programs[i] = cands.row(int(best[i]))
+        values[i] = best_values[i]
+    inserted[ok] = True
+    if not force:
+        scorer.stats.accepted("insert", int(ok.sum()))
+    return programs, values, inserted
+
+
+def insert_tuned(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps: int, wide: bool,
+                 only: list[int] | None = None, deadline: float | None = None,
+                 ) -> tuple[list[list[int]], torch.Tensor, torch.Tensor]:
+    """Insert the best candidate, tune it by PO over the program's last block, keep it if that improves.
+
+    A fitted primitive often overshoots before tuning (a bounding box covers
+    more than its component), so the decision to keep it is taken after
+    tuning. With ``sweeps`` 0 this is :func:`insert`. Returns (programs,
+    values, inserted (B,) bool).
+    """
+    if sweeps <= 0:
+        return insert(scorer, programs, values, only)
+    new, new_values, tried = insert(scorer, programs, values, only, force=True)
+    rows = torch.nonzero(tried).flatten().tolist()
+    new, new_values = optimize(scorer, new, new_values, sweeps=sweeps, wide=wide, last_only=True, only=rows,
+                               deadline=deadline)
+    lengths = torch.tensor([len(p) for p in programs])
+    new_lengths = torch.tensor([len(p) for p in new])
+    ok = tried & improves(new_values, new_lengths, values, lengths, scorer.higher_is_better)
+    out = [new[i] if ok[i] else list(programs[i]) for i in range(len(programs))]
+    scorer.stats.accepted("insert", int(ok.sum()))
+    return out, torch.where(ok, new_values, values), ok

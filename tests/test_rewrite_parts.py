@@ -1,0 +1,74 @@
+"""Building blocks of plad.rewrite: bit counting, packed IoU, residual boxes, candidate batches."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from plad.domains.csg2d.executor import pack as pack2d
+from plad.domains.csg3d.executor import pack as pack3d
+from plad.metrics import iou
+from plad.rewrite.bits import packed_iou, popcount
+from plad.rewrite.boxes import grow_box, prefix_sums, residual_boxes
+from plad.rewrite.evaluate import first_per_group, top_per_group
+from plad.rewrite.space import Candidates
+
+
+def test_popcount_of_int64_words():
+    g = torch.Generator().manual_seed(0)
+    words = torch.randint(-2 ** 63, 2 ** 63 - 1, (2000,), generator=g, dtype=torch.int64)
+    expected = [bin(w & (2 ** 64 - 1)).count("1") for w in words.tolist()]
+    assert popcount(words).tolist() == expected
+    assert popcount(torch.tensor([-1, 0, 1, -2 ** 63])).tolist() == [64, 0, 1, 1]
+
+
+def test_packed_iou_is_the_iou_metric():
+    g = torch.Generator().manual_seed(1)
+    for shape, pack in (((64, 64), pack2d), ((32, 32, 32), pack3d)):
+        a = torch.rand(40, *shape, generator=g) < 0.3
+        b = torch.rand(40, *shape, generator=g) < 0.2
+        b[0] = a[0]
+        a[1], b[1] = False, False                       # two empty shapes: IoU 1, like the metric
+        assert torch.equal(packed_iou(pack(a), pack(b)), iou(a, b))
+
+
+def test_residual_boxes_bound_and_grow_inside_components():
+    mask = np.zeros((32, 32, 32), dtype=bool)
+    mask[2:6, 3:9, 1:5] = True                          # a box of 96 voxels
+    mask[4:6, 3:5, 5:12] = True                         # a bar sticking out of it: one component of 124
+    mask[20:23, 20:23, 20:23] = True                    # a separate cube of 27
+    boxes = residual_boxes(mask, components=2)
+    assert boxes[0] == ([2, 3, 1], [5, 8, 11])          # bounding box of the larger component
+    assert boxes[1] == ([2, 3, 1], [5, 8, 4])           # the box grown inside it from its deepest voxel
+    assert boxes[2] == boxes[3] == ([20, 20, 20], [22, 22, 22])
+    assert residual_boxes(mask, components=1, bounding=False) == [boxes[1]]
+    assert residual_boxes(np.zeros_like(mask), components=2) == []
+    # more grown boxes: the next seed is the deepest voxel the first box leaves uncovered (the bar),
+    # and the box grows from it through the whole mask; a component that is covered stops early
+    assert residual_boxes(mask, components=2, bounding=False, grown=3) == [
+        boxes[1], ([4, 3, 1], [5, 4, 11]), boxes[3]]
+    assert grow_box(prefix_sums(mask), (21, 21, 21)) == ([20, 20, 20], [22, 22, 22])
+
+
+def test_group_selection_prefers_value_then_fewer_tokens():
+    owner = np.array([0, 0, 0, 2, 2])
+    values = np.array([1.0, 0.5, 0.5, 3.0, 2.0])        # lower is better here
+    lengths = np.array([5, 7, 6, 4, 4])
+    assert first_per_group(owner, values, lengths).tolist() == [2, -1, 4]
+    # screen: higher is better; ties go to fewer tokens, then the first row
+    score = np.array([0.9, 0.9, 0.1, 0.5, 0.5])
+    assert top_per_group(score, np.array([6, 5, 5, 4, 4]), owner, keep=1).tolist() == [1, 3]
+
+
+def test_candidates_concat_keeps_templates():
+    a = Candidates(torch.tensor([[1, 2, 3], [1, 4, 3]]), torch.tensor([3, 3]), torch.tensor([0, 0]),
+                   bases=torch.tensor([[1, 2, 3]]), base=torch.tensor([0, 0]), position=torch.tensor([1, 1]))
+    b = Candidates(torch.tensor([[5, 6]]), torch.tensor([2]), torch.tensor([1]),
+                   bases=torch.tensor([[5, 0]]), base=torch.tensor([0]), position=torch.tensor([1]))
+    c = Candidates.concat([a, b])
+    assert c.tokens.tolist() == [[1, 2, 3], [1, 4, 3], [5, 6, 0]]
+    assert c.base.tolist() == [0, 0, 1] and c.bases.tolist() == [[1, 2, 3], [5, 0, 0]]
+    for i in range(len(c)):
+        row = c.bases[c.base[i]].clone()
+        row[c.position[i]] = c.tokens[i, c.position[i]]
+        assert row[: int(c.lengths[i])].tolist() == c.row(i)
+    assert Candidates.concat([a, Candidates.from_lists([[7]], [2])]).bases is None
