@@ -8,6 +8,7 @@ import pytest
 from plad.config import ConfigError, load_params, section
 from plad.data import load_prepared
 from plad.datasets.cad import load_cad
+from plad.layout import Layout
 from plad.stages.evaluate import EvaluateConfig
 from plad.stages.prepare import PrepareConfig, main, prepare
 from plad.stages.pretrain import PretrainConfig
@@ -67,24 +68,23 @@ def test_profiles_are_complete_and_params_is_the_cpu_profile():
                 assert cfg.domain == domain, (profile, name, domain)
             ft = section(params, f"finetune.{domain}", FinetuneStageConfig)
             assert list(ft.methods) == params["methods"]   # every DVC matrix entry has its params key
-            assert section(params, f"pretrain.{domain}", PretrainConfig).out_dir == "runs/pretrain"
     assert (REPO / "params.yaml").read_text() == (REPO / "profiles" / "cpu.yaml").read_text()
 
 
 def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
-    cfg = PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), out_dir=str(tmp_path / "out"))
-    summary = prepare(cfg)["domains"]["csg2d"]
+    layout = Layout(tmp_path)
+    summary = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir)), layout)["domains"]["csg2d"]
     assert summary["train_count"] == 10000 and summary["test_count"] == 3000
-    assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == summary
-    test = load_prepared(tmp_path / "out" / "csg2d.npz", "test")
+    assert json.loads(layout.prepared_summary("csg2d").read_text()) == summary
+    test = load_prepared(layout.prepared("csg2d"), "test")
     assert np.array_equal(test, load_cad(datasets_dir, "test"))
-    assert not list((tmp_path / "out").glob(".*.tmp"))  # no temporary files left
+    assert not list(layout.prepared_dir.glob(".*.tmp"))  # no temporary files left
 
 
 def test_prepare_main_reports_errors_in_one_line(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"prepare:\n  domains: [csg2d]\n  data_dir: {tmp_path}\n  out_dir: {tmp_path / 'out'}\n")
-    assert main(["--params", str(p)]) == 1
+    p.write_text(f"prepare:\n  domains: [csg2d]\n  data_dir: {tmp_path}\n")
+    assert main(["--params", str(p), "--root", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found" in err
     p.write_text("prepare:\n  colour: red\n")

@@ -123,10 +123,10 @@ def test_smoke_repro_writes_the_whole_table(smoke_run):
 
 def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
     work, env, _ = smoke_run
-    out = tmp_path / "from_mlflow"
+    out = tmp_path / "from_mlflow"   # a root without any of the pipeline's files
     run(["python", "-m", "plad.stages.report", "--params", "params.yaml", "--set", "source=mlflow",
-         "--set", "register=false", "--set", f"out_dir={out}", "--set", "results_dir=/nonexistent"], work, env)
-    assert (out / "table.md").read_text() == (work / "results" / "table.md").read_text()
+         "--set", "register=false", "--root", str(out)], work, env)
+    assert (out / "results" / "table.md").read_text() == (work / "results" / "table.md").read_text()
 
 
 def test_report_registers_the_champion(smoke_run):

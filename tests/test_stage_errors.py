@@ -26,15 +26,15 @@ def test_a_missing_domain_is_a_one_line_error(tmp_path, capsys, module, section)
 
 def test_pretrain_without_synthetic_programs_names_the_file(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"pretrain:\n  domain: csg2d\n  synthetic_dir: {tmp_path / 'nothing'}\n"
-                 f"  out_dir: {tmp_path / 'runs'}\n")
-    assert pretrain.main(["--params", str(p)]) == 1
+    p.write_text("pretrain:\n  domain: csg2d\n")
+    assert pretrain.main(["--params", str(p), "--root", str(tmp_path / "nothing")]) == 1
     err = capsys.readouterr().err.strip()
-    assert "synthesize stage" in err and str(tmp_path / "nothing") in err
+    assert "synthesize stage" in err and str(tmp_path / "nothing" / "data" / "synthetic" / "csg2d.npz") in err
 
 
 def test_evaluate_with_a_missing_checkpoint_names_the_file(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"evaluate:\n  domain: csg2d\n  checkpoint: {tmp_path / 'none.pt'}\n  out_dir: {tmp_path / 'out'}\n")
-    assert evaluate.main(["--params", str(p)]) == 1
-    assert "no such checkpoint" in capsys.readouterr().err
+    p.write_text("evaluate:\n  domain: csg2d\n")
+    assert evaluate.main(["--params", str(p), "--root", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no such checkpoint" in err and str(tmp_path / "runs" / "pretrain" / "csg2d" / "best.pt") in err
