@@ -92,10 +92,10 @@ def run_configs(params: dict, source: str):
     from plad.stages.finetune import FinetuneStageConfig
     from plad.stages.report import ReportConfig
 
-    fcfg = section(params, "flows", FlowsConfig, source) if "flows" in params else FlowsConfig()
-    ft = section(params, f"finetune.{fcfg.domain}", FinetuneStageConfig, source)
-    ev = section(params, f"evaluate.{fcfg.domain}", EvaluateConfig, source)
-    rp = section(params, "report", ReportConfig, source)
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
+    ft = section(params, f"finetune.{fcfg.domain}", FinetuneStageConfig)
+    ev = section(params, f"evaluate.{fcfg.domain}", EvaluateConfig)
+    rp = section(params, "report", ReportConfig)
     unknown = [m for m in fcfg.methods if m not in ft.methods]
     if unknown:
         raise ConfigError(f"{source}: flows.methods {', '.join(unknown)} not in finetune.{fcfg.domain}.methods")
@@ -142,7 +142,7 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
 def with_runner(params_path: str):
     """The flow with the task runner chosen by ``flows.dask_address``."""
     params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
     if fcfg.dask_address:
         from prefect_dask import DaskTaskRunner
 
@@ -153,7 +153,7 @@ def with_runner(params_path: str):
 def deployment(params_path: str, root: str = "."):
     """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
     params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
     return with_runner(params_path).to_deployment(
         name=fcfg.deployment, cron=fcfg.cron,
         parameters={"params_path": str(Path(params_path).resolve()), "root": str(Path(root).resolve())})

@@ -26,7 +26,7 @@ def prepare_source(cfg: PrepareConfig, layout: Layout) -> dict[str, dict]:
 @flow(name="plad-prepare-data")
 def prepare_data(params_path: str = "params.yaml", root: str = ".") -> dict[str, dict]:
     """``root``: the layout root the prepared files are written under (:mod:`plad.layout`)."""
-    cfg = section(load_params(params_path), "prepare", PrepareConfig, source=params_path)
+    cfg = section(load_params(params_path), "prepare", PrepareConfig)
     futures = [prepare_source.submit(part, Layout(root)) for part in prepare_sources(cfg)]
     out: dict[str, dict] = {"domains": {}, "sources": {}}
     for f in futures:

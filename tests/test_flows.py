@@ -20,8 +20,8 @@ def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness)
     from plad.data import load_prepared
 
     params = tmp_path / "params.yaml"
-    params.write_text(f"prepare:\n  data_dir: {datasets_dir}\n"
-                      f"  domains: [csg2d, csg3d, shapeassembly]\n  limit: {{partnet: 3}}\n")
+    params.write_text(f"domains: [csg2d, csg3d, shapeassembly]\n"
+                      f"prepare:\n  data_dir: {datasets_dir}\n  limit: {{partnet: 3}}\n")
     result = prepare_data(str(params), str(tmp_path))
     out = tmp_path / "data" / "prepared"
     assert result["domains"]["csg2d"]["val_count"] == 3000
@@ -34,9 +34,9 @@ def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness)
 
 
 SMOKE_PARAMS = """
+domains: [csg2d]
 finetune:
   csg2d:
-    domain: csg2d
     train_limit: 24
     val_limit: 6
     max_minutes: 5
@@ -53,11 +53,9 @@ finetune:
       ws: {latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}
 evaluate:
   csg2d:
-    domain: csg2d
     limit: 6
     beam: 2
 report:
-  domains: [csg2d]
   per_round: {}
 flows:
   methods: [lest_st_ws]

@@ -46,8 +46,8 @@ def stage_main(stage: str, cls: type[T], run: Callable[[T, StageContext], Any], 
     args = parser.parse_args(argv)
     try:
         params = load_params(args.params)
-        raw = apply_overrides(lookup(params, args.section, args.params), args.set, args.section)
-        cfg = build(cls, raw, args.section, source=args.params)
+        raw = apply_overrides(lookup(params, args.section), args.set, args.section)
+        cfg = build(cls, raw, args.section, source=params.source(args.section))
         print(json.dumps(run(cfg, StageContext(Layout(args.root), Path(args.params)))))
     except (ConfigError, DataError, CheckpointError) as err:
         print(f"{stage}: error: {err}", file=sys.stderr)
