@@ -9,9 +9,11 @@ steps run. Each step of a round (inference, wake-sleep generator, training,
 validation) is a task; inference over the training shapes is split into
 ``flows.shards`` tasks, with retries, that run in parallel on the flow's task
 runner: threads by default, a Dask cluster when ``flows.dask_address`` is set
-(through prefect-dask). Every flow run writes under
-``flows.out_dir/<run name>/`` so that scheduled retrainings never overwrite
-each other; a run started again with the same name resumes.
+(through prefect-dask). Every flow run starts from the project's prepared
+data and pretrained model and writes under ``runs/flows/<run name>/``, in
+the project's layout (:meth:`plad.layout.Layout.flow_run`), so that
+scheduled retrainings never overwrite each other; a run started again with
+the same name resumes.
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ from prefect import flow, task
 from prefect.cache_policies import NONE
 
 from plad.config import ConfigError, load_params, section
+from plad.layout import SP, Layout
+from plad.stages import StageContext
 
 
 @dataclass
@@ -46,7 +50,6 @@ class FlowsConfig:
     #: cron of the served deployment (periodic retraining)
     cron: str = "0 3 * * 0"
     deployment: str = "plad-retrain"
-    out_dir: str = "runs/flows"
     evaluate: bool = True
 
 
@@ -83,63 +86,63 @@ def task_step(name: str, fn, *args, **kwargs):
     return task(fn, name=name, cache_policy=NONE)(*args, **kwargs)
 
 
-def run_configs(params: dict, source: str, run_name: str):
-    """(flows, finetune, evaluate, report) configs, with every output under ``flows.out_dir/run_name``."""
+def run_configs(params: dict, source: str):
+    """(flows, finetune, evaluate, report) configs of a flow run."""
     from plad.stages.evaluate import EvaluateConfig
     from plad.stages.finetune import FinetuneStageConfig
     from plad.stages.report import ReportConfig
 
-    fcfg = section(params, "flows", FlowsConfig, source) if "flows" in params else FlowsConfig()
-    ft = section(params, f"finetune.{fcfg.domain}", FinetuneStageConfig, source)
-    ev = section(params, f"evaluate.{fcfg.domain}", EvaluateConfig, source)
-    rp = section(params, "report", ReportConfig, source)
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
+    ft = section(params, f"finetune.{fcfg.domain}", FinetuneStageConfig)
+    ev = section(params, f"evaluate.{fcfg.domain}", EvaluateConfig)
+    rp = section(params, "report", ReportConfig)
     unknown = [m for m in fcfg.methods if m not in ft.methods]
     if unknown:
         raise ConfigError(f"{source}: flows.methods {', '.join(unknown)} not in finetune.{fcfg.domain}.methods")
-    root = Path(fcfg.out_dir) / run_name
-    ft = dataclasses.replace(ft, out_dir=str(root / "finetune"), summary_dir=str(root / "results" / "finetune"))
-    return fcfg, ft, ev, rp, root
+    return fcfg, ft, ev, rp
 
 
 @flow(name="plad-finetune")
 def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = None,
-                  run_name: str | None = None) -> dict:
-    """Fine-tune the configured methods, evaluate them on the test split, and write the report."""
+                  run_name: str | None = None, root: str = ".") -> dict:
+    """Fine-tune the configured methods, evaluate them on the test split, and write the report.
+
+    ``root`` is the project's layout root (:mod:`plad.layout`): the run starts from its prepared data
+    and pretrained model and writes under its ``runs/flows/<run_name>/``.
+    """
     from plad.stages.evaluate import tracked_evaluate
     from plad.stages.finetune import tracked_finetune
     from plad.stages.report import report
 
     run_name = run_name or dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     params = load_params(params_path)
-    fcfg, ft, ev, rp, root = run_configs(params, params_path, run_name)
+    fcfg, ft, ev, rp = run_configs(params, params_path)
+    ctx = StageContext(Layout(root).flow_run(run_name), Path(params_path))
     keys = list(methods or fcfg.methods or ft.methods)
-    out: dict = {"run_name": run_name, "out_dir": str(root), "methods": {}}
+    out: dict = {"run_name": run_name, "out_dir": str(ctx.layout.root), "methods": {}}
     for key in keys:
         cfg = dataclasses.replace(ft, key=key)
         infer = sharded_infer(cfg.domain, cfg.plad.infer_beam, cfg.plad.infer_batch, fcfg)
-        summary = tracked_finetune(cfg, infer=infer, step=task_step)
+        summary = tracked_finetune(cfg, ctx, infer=infer, step=task_step)
         out["methods"][key] = summary
         if fcfg.evaluate:
-            ecfg = dataclasses.replace(ev, method=key, checkpoint=str(Path(cfg.out_dir) / cfg.domain / key / "best.pt"),
-                                       out_dir=str(root / "results" / "eval" / key / cfg.domain))
-            out["methods"][key]["test"] = task(tracked_evaluate, name=f"evaluate {key}", cache_policy=NONE)(ecfg)[
-                ecfg.splits[-1]]["mean"]
+            ecfg = dataclasses.replace(ev, method=key)
+            out["methods"][key]["test"] = task(tracked_evaluate, name=f"evaluate {key}", cache_policy=NONE)(
+                ecfg, ctx)[ecfg.splits[-1]]["mean"]
     if fcfg.evaluate:
-        sp = dataclasses.replace(ev, out_dir=str(root / "results" / "eval" / "sp" / ft.domain))
-        task(tracked_evaluate, name="evaluate sp", cache_policy=NONE)(sp)
-        rows = ["sp", *[k for k in keys if k not in rp.per_round.values()]]
+        task(tracked_evaluate, name="evaluate sp", cache_policy=NONE)(dataclasses.replace(ev, method=SP), ctx)
+        rows = [SP, *[k for k in keys if k not in rp.per_round.values()]]
         rcfg = dataclasses.replace(rp, domains=[ft.domain], methods=rows,
                                    per_round={a: b for a, b in rp.per_round.items() if a in keys and b in keys},
-                                   results_dir=str(root / "results"), finetune_dir=ft.out_dir,
-                                   out_dir=str(root / "results"), register=False)
-        out["report"] = task(report, name="report", cache_policy=NONE)(rcfg)
+                                   register=False)
+        out["report"] = task(report, name="report", cache_policy=NONE)(rcfg, ctx.layout)
     return out
 
 
 def with_runner(params_path: str):
     """The flow with the task runner chosen by ``flows.dask_address``."""
     params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
     if fcfg.dask_address:
         from prefect_dask import DaskTaskRunner
 
@@ -147,28 +150,31 @@ def with_runner(params_path: str):
     return finetune_flow
 
 
-def deployment(params_path: str):
+def deployment(params_path: str, root: str = "."):
     """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
     params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
+    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
     return with_runner(params_path).to_deployment(
-        name=fcfg.deployment, cron=fcfg.cron, parameters={"params_path": str(Path(params_path).resolve())})
+        name=fcfg.deployment, cron=fcfg.cron,
+        parameters={"params_path": str(Path(params_path).resolve()), "root": str(Path(root).resolve())})
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m flows.finetune", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
     parser.add_argument("--methods", nargs="*", help="finetune.methods keys (default: flows.methods, else all)")
-    parser.add_argument("--run-name", help="output folder under flows.out_dir (default: the UTC time)")
+    parser.add_argument("--run-name", help="output folder under runs/flows/ (default: the UTC time)")
+    parser.add_argument("--root", default=".",
+                        help="root folder of the project's artifacts (plad.layout; default: the working directory)")
     parser.add_argument("--serve", action="store_true",
                         help="serve the deployment on its cron (needs a running `prefect server start`)")
     args = parser.parse_args(argv)
     if args.serve:
         from prefect import serve
 
-        serve(deployment(args.params))
+        serve(deployment(args.params, args.root))
     else:
-        print(with_runner(args.params)(args.params, args.methods, args.run_name))
+        print(with_runner(args.params)(args.params, args.methods, args.run_name, args.root))
 
 
 if __name__ == "__main__":

@@ -14,18 +14,20 @@ import argparse
 from prefect import flow, task
 
 from plad.config import load_params, section
+from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, prepare, prepare_sources
 
 
 @task(retries=1, retry_delay_seconds=5)
-def prepare_source(cfg: PrepareConfig) -> dict[str, dict]:
-    return prepare(cfg)
+def prepare_source(cfg: PrepareConfig, layout: Layout) -> dict[str, dict]:
+    return prepare(cfg, layout)
 
 
 @flow(name="plad-prepare-data")
-def prepare_data(params_path: str = "params.yaml") -> dict[str, dict]:
-    cfg = section(load_params(params_path), "prepare", PrepareConfig, source=params_path)
-    futures = [prepare_source.submit(part) for part in prepare_sources(cfg)]
+def prepare_data(params_path: str = "params.yaml", root: str = ".") -> dict[str, dict]:
+    """``root``: the layout root the prepared files are written under (:mod:`plad.layout`)."""
+    cfg = section(load_params(params_path), "prepare", PrepareConfig)
+    futures = [prepare_source.submit(part, Layout(root)) for part in prepare_sources(cfg)]
     out: dict[str, dict] = {"domains": {}, "sources": {}}
     for f in futures:
         for key, value in f.result().items():
@@ -36,4 +38,7 @@ def prepare_data(params_path: str = "params.yaml") -> dict[str, dict]:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
-    print(prepare_data(parser.parse_args().params))
+    parser.add_argument("--root", default=".",
+                        help="root folder of the artifacts (plad.layout; default: the working directory)")
+    args = parser.parse_args()
+    print(prepare_data(args.params, args.root))

@@ -1,11 +1,23 @@
-"""Typed configuration from ``params.yaml``.
+"""Typed configuration from ``params.yaml``, with a profile applied.
 
 Each component has a dataclass; its section of ``params.yaml`` is named after
 the DVC stage that uses it. Unknown keys are errors (a typo must not silently
 fall back to a default), and so are values of the wrong type.
+
+A stage that runs once per domain (:data:`PER_DOMAIN`) has a ``base`` block
+and one block per domain holding only the keys that differ; its config for
+domain ``d`` is ``base`` merged with block ``d``. The top-level ``profile``
+names ``profiles/<profile>.yaml`` beside the params file: an override file in
+the same shape that holds only what differs (``cpu``, the default, changes
+nothing); it is merged on top, its base block before its domain block.
+Mappings merge key by key, any other value replaces. A profile may only change
+keys that params.yaml sets, so a typo there is an error too.
+:func:`load_params` returns every section so resolved (``pretrain.<domain>``
+is then one complete mapping), and :func:`section` builds its dataclass.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 import types
@@ -22,25 +34,160 @@ class ConfigError(ValueError):
     """A params file problem; the message is one line naming the file and key."""
 
 
-#: Top-level keys a params file may have: ``profile`` and one section per stage.
-SECTIONS = {"profile", "domains", "methods", "prepare", "synthesize", "pretrain", "evaluate", "finetune", "report",
-            "flows"}
+#: Top-level keys dvc.yaml reads itself (stage names and files); a profile cannot change them.
+PIPELINE_KEYS = ("profile", "domains", "methods")
+#: One section per DVC stage (and the Prefect flows').
+STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows")
+#: Top-level keys a params file may have.
+SECTIONS = {*PIPELINE_KEYS, *STAGE_SECTIONS}
+#: Sections with a ``base`` block and one block per domain (DVC stages ``<stage>@<domain>``).
+PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "finetune")
+BASE = "base"
+#: Top-level keys handed to a section as its keys of the same name (their one home is the top level).
+INJECTED = {"prepare": ("domains",), "report": ("domains", "profile")}
 
 
-def load_params(path: str | os.PathLike = "params.yaml") -> dict[str, Any]:
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"{path}: no such params file")
+def profile_path(params_path: str | os.PathLike, profile: str) -> Path:
+    """The override file of ``profile``: ``profiles/<profile>.yaml`` beside the params file."""
+    return Path(params_path).parent / "profiles" / f"{profile}.yaml"
+
+
+def merge(*layers: Any) -> dict[str, Any]:
+    """Mappings merged left to right: nested mappings key by key, any other value replaced (copied)."""
+    out: dict[str, Any] = {}
+    for layer in layers:
+        for key, value in (layer or {}).items():
+            if isinstance(value, dict) and isinstance(out.get(key), dict):
+                out[key] = merge(out[key], value)
+            else:
+                out[key] = copy.deepcopy(value)
+    return out
+
+
+class Params(dict):
+    """The resolved sections of a params file (a dict: section -> mapping; per-domain: domain -> mapping).
+
+    ``source(name)`` is what error messages about section ``name`` cite: the
+    params file, and the profile file where that one changed the section.
+    """
+
+    def __init__(self, data: dict[str, Any], path: Path, profile_file: Path | None = None,
+                 touched: frozenset[str] = frozenset()):
+        super().__init__(data)
+        self.path = path
+        self.profile_file = profile_file
+        self.touched = touched
+
+    def source(self, name: str) -> str:
+        parts = name.split(".")
+        key = ".".join(parts[:2]) if parts[0] in PER_DOMAIN else parts[0]
+        if self.profile_file is not None and (key in self.touched or f"{parts[0]}.{BASE}" in self.touched):
+            return f"{self.path} with {self.profile_file}"
+        return str(self.path)
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level")
+    return data
+
+
+def _blocks(data: dict[str, Any], name: str, source: Path) -> dict[str, dict[str, Any]]:
+    """The blocks (``base`` and per domain) of per-domain section ``name``, each a mapping."""
+    value = data.get(name) or {}
+    if not isinstance(value, dict):
+        raise ConfigError(f"{source}: {name} must be a mapping of blocks ({BASE} and one per domain), got {value!r}")
+    blocks = {}
+    for block, body in value.items():
+        body = {} if body is None else body
+        if not isinstance(body, dict):
+            raise ConfigError(f"{source}: {name}.{block} = {body!r}: expected a block ({name}.{BASE}, or a domain's "
+                              f"keys that differ from it)")
+        if "domain" in body:
+            raise ConfigError(f"{source}: {name}.{block}.domain: not a key to set (a block's name is its domain)")
+        blocks[str(block)] = body
+    return blocks
+
+
+def _check_known(override: dict[str, Any], known: dict[str, Any], where: str, source: Path) -> None:
+    """Every key of a profile's ``override`` is a key params.yaml sets (``known``); an empty mapping takes any."""
+    for key, value in override.items():
+        if key not in known:
+            raise ConfigError(f"{source}: {where}.{key} is not set in params.yaml; a profile only changes "
+                              f"values params.yaml sets")
+        if isinstance(value, dict) and isinstance(known[key], dict) and known[key]:
+            _check_known(value, known[key], f"{where}.{key}", source)
+
+
+def _read_profile(path: Path, data: dict[str, Any]) -> tuple[Path | None, dict[str, Any]]:
+    profile = data.get("profile")
+    if profile is None:
+        return None, {}
+    if not isinstance(profile, str) or not profile or "/" in profile:
+        raise ConfigError(f"{path}: profile = {profile!r} should be the name of a file in profiles/")
+    ppath = profile_path(path, profile)
+    if not ppath.is_file():
+        raise ConfigError(f"{path}: profile {profile!r}: no such file {ppath}")
+    over = _read_yaml(ppath)
+    for key in over:
+        if key in PIPELINE_KEYS:
+            raise ConfigError(f"{ppath}: {key} cannot be set by a profile (dvc.yaml reads it from {path.name})")
+        if key not in STAGE_SECTIONS:
+            raise ConfigError(f"{ppath}: unknown section {key}; allowed: {', '.join(STAGE_SECTIONS)}")
+        if key not in data:
+            raise ConfigError(f"{ppath}: section {key} is not in {path}")
+        if key in PER_DOMAIN:
+            blocks, mine = _blocks(data, key, path), _blocks(over, key, ppath)
+            for block, body in mine.items():
+                if block not in blocks:
+                    raise ConfigError(f"{ppath}: {key}.{block} is not a block of {path}")
+                known = merge(*blocks.values()) if block == BASE else merge(blocks.get(BASE), blocks[block])
+                _check_known(body, known, f"{key}.{block}", ppath)
+        else:
+            if not isinstance(over[key], dict):
+                raise ConfigError(f"{ppath}: {key} must be a mapping, got {over[key]!r}")
+            _check_known(over[key], data[key] or {}, key, ppath)
+    return ppath, over
+
+
+def load_params(path: str | os.PathLike = "params.yaml") -> Params:
+    """The params file with its profile applied: every section resolved (see the module docstring)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such params file")
+    data = _read_yaml(path)
     unknown = sorted(set(data) - SECTIONS)
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {', '.join(unknown)}; allowed: {', '.join(sorted(SECTIONS))}")
-    return data
+    ppath, over = _read_profile(path, data)
+    out: dict[str, Any] = {k: copy.deepcopy(data[k]) for k in PIPELINE_KEYS if k in data}
+    touched = set()
+    for name in STAGE_SECTIONS:
+        if name not in data:
+            continue
+        if name in PER_DOMAIN:
+            blocks, mine = _blocks(data, name, path), (_blocks(over, name, ppath) if name in over else {})
+            touched.update(f"{name}.{b}" for b in mine)
+            out[name] = {d: {**merge(blocks.get(BASE), body, mine.get(BASE), mine.get(d)), "domain": d}
+                         for d, body in blocks.items() if d != BASE}
+            continue
+        if data[name] is not None and not isinstance(data[name], dict):
+            raise ConfigError(f"{path}: {name} must be a mapping, got {data[name]!r}")
+        if name in over:
+            touched.add(name)
+        resolved = merge(data[name], over.get(name))
+        for key in INJECTED.get(name, ()):
+            if key in resolved:
+                raise ConfigError(f"{path}: {name}.{key}: not a key to set here; its one home is the top-level "
+                                  f"{key!r}")
+            if key in data:
+                resolved[key] = copy.deepcopy(data[key])
+        out[name] = resolved
+    return Params(out, path, ppath, frozenset(touched))
 
 
 def _check_type(value: Any, annotation: Any) -> bool:
@@ -103,19 +250,24 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
     return cls(**values)
 
 
-def lookup(params: dict[str, Any], name: str, source: str = "params.yaml") -> Any:
+def lookup(params: dict[str, Any], name: str, source: str | None = None) -> Any:
     """``params["pretrain"]["<domain>"]`` for ``name = "pretrain.<domain>"``; a missing part is an error."""
+    source = source or (params.source(name) if isinstance(params, Params) else "params.yaml")
+    parts = name.split(".")
+    if len(parts) == 1 and parts[0] in PER_DOMAIN and isinstance(params.get(parts[0]), dict):
+        raise ConfigError(f"{source}: section {name!r} has one block per domain: name one, e.g. "
+                          f"{name}.<domain> ({', '.join(params[name]) or 'none in the file'})")
     node: Any = params
-    for i, part in enumerate(name.split(".")):
+    for i, part in enumerate(parts):
         if not isinstance(node, dict) or part not in node:
-            where = ".".join(name.split(".")[:i + 1])
-            raise ConfigError(f"{source}: section {where!r} is missing")
+            raise ConfigError(f"{source}: section {'.'.join(parts[:i + 1])!r} is missing")
         node = node[part]
     return node
 
 
-def section(params: dict[str, Any], name: str, cls: type[T], source: str = "params.yaml") -> T:
-    """Build ``cls`` from the section ``name`` (dotted for a domain's subsection, e.g. ``pretrain.<domain>``)."""
+def section(params: dict[str, Any], name: str, cls: type[T], source: str | None = None) -> T:
+    """Build ``cls`` from the section ``name`` (dotted for a domain's block, e.g. ``pretrain.<domain>``)."""
+    source = source or (params.source(name) if isinstance(params, Params) else "params.yaml")
     return build(cls, lookup(params, name, source), name, source)
 
 
@@ -124,8 +276,6 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str], where: str) -> di
 
     Keys are checked later by :func:`build`, so a typo is still an error.
     """
-    import copy
-
     out = copy.deepcopy(raw) if raw is not None else {}
     for item in overrides:
         key, sep, text = item.partition("=")

@@ -395,6 +395,8 @@ class TargetSource(abc.ABC):
 
     #: the source's name in params and results, e.g. ``"cad"``
     name: str
+    #: files :meth:`prepare` writes into the prepared folder besides the domains' own (DVC outputs too)
+    files: tuple[str, ...] = ()
 
     @abc.abstractmethod
     def load(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
@@ -412,9 +414,9 @@ class TargetSource(abc.ABC):
 
 
 # --------------------------------------------------------------------------- prepared files
-def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarray], out_dir: str | os.PathLike,
-                   extra: dict | None = None) -> dict:
-    """Write ``<out_dir>/<name>.npz`` (bit-packed splits) and its ``.json`` summary; returns the summary."""
+def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarray], path: str | os.PathLike,
+                   summary_path: str | os.PathLike, extra: dict | None = None) -> dict:
+    """Write ``path`` (a ``.npz`` of bit-packed splits) and its JSON summary; returns the summary."""
     arrays = {s: np.packbits(x.reshape(len(x), -1), axis=1) for s, x in splits.items()}
     arrays["shape"] = np.asarray(shape)
     summary = {
@@ -424,9 +426,8 @@ def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarr
         **{f"{s}_occupancy": round(float(x.mean()), 6) if len(x) else 0.0 for s, x in splits.items()},
         **(extra or {}),
     }
-    out = Path(out_dir)
-    atomic_write(out / f"{name}.npz", lambda fh: np.savez_compressed(fh, **arrays))
-    atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write_text(Path(summary_path), json.dumps(summary, indent=2) + "\n")
     return summary
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
+from plad.layout import METRICS, STATE, Layout
 from plad.loop import read_state, upgrade_summary
 from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
@@ -42,16 +43,16 @@ class MethodResult:
 
 
 # -- gathering ------------------------------------------------------------------------------------
-def from_files(domain: str, keys: list[str], results_dir: str | Path, finetune_dir: str | Path) -> list[MethodResult]:
+def from_files(domain: str, keys: list[str], layout: Layout) -> list[MethodResult]:
     out = []
     for key in keys:
-        metrics = Path(results_dir) / "eval" / key / domain / "metrics.json"
+        metrics = layout.eval_dir(key, domain) / METRICS
         test = json.loads(metrics.read_text())["test"]["mean"] if metrics.exists() else None
         res = MethodResult(key, test)
-        state_file = Path(finetune_dir) / domain / key / "state.json"
+        state_file = layout.finetune_dir(domain, key) / STATE
         if state_file.exists():   # read_state/upgrade_summary also read the files of older versions
             res.curve = [(float(r["seconds"]), float(r["val"])) for r in read_state(state_file).history]
-        summary = Path(results_dir) / "finetune" / domain / f"{key}.json"
+        summary = layout.finetune_summary(domain, key)
         if summary.exists():
             s = upgrade_summary(json.loads(summary.read_text()))
             res.stopped, res.train_seconds = s.get("stopped"), s.get("train_seconds")

@@ -21,6 +21,7 @@ import torch
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
 from plad.job import Job
+from plad.layout import BEST, STATE
 from plad.loop import JsonStore, Limits, Loop, Unit
 from plad.model import PLADNet
 from plad.sampling import NEG, ancestral_sample
@@ -149,10 +150,10 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
         learner.baseline, learner.batches = payload["baseline"], payload["batches"]
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / "best.pt", model, domain.name, names, {"unit": unit, "val": value})
+        save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
-        model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
+        model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
     def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
         rng = np.random.default_rng([seed, unit])
@@ -167,6 +168,6 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
         return Unit(validate(), totals)
 
     loop = Loop("epoch", domain.metric, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, job.budget_seconds),
-                JsonStore(out / "state.json", save=save, restore=restore))
+                JsonStore(out / STATE, save=save, restore=restore))
     result = loop.run(epoch, start=validate, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit)
     return {"method": "rl", **result.summary()}

@@ -43,6 +43,7 @@ from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
 from plad.fsutil import atomic_write
 from plad.job import Job
+from plad.layout import BEST, LAST, STATE
 from plad.loop import JsonStore, Limits, Loop, Objective, Unit
 from plad.methods import MethodConfig, lest_source, mixture_batches, parse_mixture, st_source
 from plad.model import PLADNet
@@ -163,10 +164,10 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         return mean_metric(model, domain, job.val, cfg.val_beam_round, cfg.infer_batch)
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / "best.pt", model, domain.name, names, {"unit": unit, "val": value})
+        save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
-        model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
+        model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
     def validate_epoch(m: PLADNet) -> dict[str, float]:
         return {"val": mean_metric(m, domain, job.val, cfg.val_beam_epoch, cfg.infer_batch)}
@@ -175,7 +176,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         nonlocal pbest
         torch.manual_seed(job.seed * 1_000_003 + rnd)  # a resumed round draws the same dropout masks
         round_dir = out / f"round_{rnd:03d}"
-        if not (round_dir / "last.pt").exists():  # P_BEST of this round not yet updated (or a fresh round)
+        if not (round_dir / LAST).exists():  # P_BEST of this round not yet updated (or a fresh round)
             stats = run(f"round {rnd}: infer", infer_into_pbest, model, job.train, pbest, infer)
             pbest.save(out / "pbest_round.npz")
         else:
@@ -202,7 +203,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         return Unit(value, {**stats, "epochs": result.units}, patience=result.units)
 
     loop = Loop("round", metric, Limits(cfg.max_rounds, cfg.round_patience, cfg.min_delta, job.budget_seconds),
-                JsonStore(out / "state.json", save=save, restore=restore))
+                JsonStore(out / STATE, save=save, restore=restore))
     result = loop.run(one_round, start=validate_round, keep_best=keep_best, restore_best=restore_best,
                       on_unit=hooks.on_unit)
     return {"method": method.method, **result.summary()}

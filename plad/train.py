@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from plad.checkpoint import read_checkpoint, save_checkpoint
+from plad.layout import BEST, LAST
 from plad.loop import Limits, Loop, LoopResult, Objective, Unit, upgrade_state
 from plad.model import PLADNet
 
@@ -141,11 +142,11 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]})
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / "best.pt", model, domain, token_names, {"unit": unit, "val": value})
+        save_checkpoint(out / BEST, model, domain, token_names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
-        model.load_state_dict(read_checkpoint(out / "best.pt")["state_dict"])
+        model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
-    store = _LastCheckpoint(out / "last.pt", model, opt, sched, domain, token_names, fingerprint)
+    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint)
     loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, budget_seconds), store)
     return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit, progress=desc)

@@ -8,10 +8,9 @@ import pytest
 from plad.config import ConfigError, load_params, section
 from plad.data import load_prepared
 from plad.datasets.cad import load_cad
-from plad.stages.evaluate import EvaluateConfig
+from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, main, prepare
 from plad.stages.pretrain import PretrainConfig
-from plad.stages.synthesize import SynthesizeConfig
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -27,9 +26,9 @@ def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
     p.write_text("prepare:\n  data_dri: /x\n")
     with pytest.raises(ConfigError, match="unknown key.*data_dri.*allowed"):
         section(load_params(p), "prepare", PrepareConfig, source=str(p))
-    p.write_text("prepare:\n  domains: csg2d\n")
+    p.write_text("domains: csg2d\nprepare: {}\n")
     with pytest.raises(ConfigError, match="prepare.domains"):
-        section(load_params(p), "prepare", PrepareConfig, source=str(p))
+        section(load_params(p), "prepare", PrepareConfig)
     p.write_text("prepare: [\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_params(p)
@@ -38,53 +37,28 @@ def test_unknown_keys_and_wrong_types_are_errors(tmp_path):
     p.write_text("pretrian:\n  domain: csg2d\n")
     with pytest.raises(ConfigError, match="unknown section.*pretrian"):
         load_params(p)
-    p.write_text("profile: x\n")
+    p.write_text("domains: [csg2d]\n")
     with pytest.raises(ConfigError, match="section 'prepare' is missing"):
         section(load_params(p), "prepare", PrepareConfig, source=str(p))
-    p.write_text("pretrain:\n  model:\n    d_modle: 3\n")
-    with pytest.raises(ConfigError, match="d_modle.*pretrain.model"):
-        section(load_params(p), "pretrain", PretrainConfig, source=str(p))
-
-
-def test_profiles_are_complete_and_params_is_the_cpu_profile():
-    from flows.finetune import FlowsConfig
-    from plad.stages.finetune import FinetuneStageConfig
-    from plad.stages.report import ReportConfig
-
-    per_domain = [("synthesize", SynthesizeConfig), ("pretrain", PretrainConfig), ("evaluate", EvaluateConfig),
-                  ("finetune", FinetuneStageConfig)]
-    for profile in ("smoke", "cpu", "paper"):
-        params = load_params(REPO / "profiles" / f"{profile}.yaml")
-        assert params["profile"] == profile
-        for name, cls in [("prepare", PrepareConfig), ("report", ReportConfig),
-                          ("flows", FlowsConfig)]:
-            section(params, name, cls)
-        assert section(params, "report", ReportConfig).domains == params["domains"]
-        assert section(params, "prepare", PrepareConfig).domains == params["domains"]
-        for domain in params["domains"]:
-            for name, cls in per_domain:
-                cfg = section(params, f"{name}.{domain}", cls)
-                assert cfg.domain == domain, (profile, name, domain)
-            ft = section(params, f"finetune.{domain}", FinetuneStageConfig)
-            assert list(ft.methods) == params["methods"]   # every DVC matrix entry has its params key
-            assert section(params, f"pretrain.{domain}", PretrainConfig).out_dir == "runs/pretrain"
-    assert (REPO / "params.yaml").read_text() == (REPO / "profiles" / "cpu.yaml").read_text()
+    p.write_text("pretrain:\n  base:\n    model:\n      d_modle: 3\n  csg2d: {}\n")
+    with pytest.raises(ConfigError, match="d_modle.*pretrain.csg2d.model"):
+        section(load_params(p), "pretrain.csg2d", PretrainConfig)
 
 
 def test_prepare_writes_packed_splits_and_summary(tmp_path, datasets_dir):
-    cfg = PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), out_dir=str(tmp_path / "out"))
-    summary = prepare(cfg)["domains"]["csg2d"]
+    layout = Layout(tmp_path)
+    summary = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir)), layout)["domains"]["csg2d"]
     assert summary["train_count"] == 10000 and summary["test_count"] == 3000
-    assert json.loads((tmp_path / "out" / "csg2d.json").read_text()) == summary
-    test = load_prepared(tmp_path / "out" / "csg2d.npz", "test")
+    assert json.loads(layout.prepared_summary("csg2d").read_text()) == summary
+    test = load_prepared(layout.prepared("csg2d"), "test")
     assert np.array_equal(test, load_cad(datasets_dir, "test"))
-    assert not list((tmp_path / "out").glob(".*.tmp"))  # no temporary files left
+    assert not list(layout.prepared_dir.glob(".*.tmp"))  # no temporary files left
 
 
 def test_prepare_main_reports_errors_in_one_line(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"prepare:\n  domains: [csg2d]\n  data_dir: {tmp_path}\n  out_dir: {tmp_path / 'out'}\n")
-    assert main(["--params", str(p)]) == 1
+    p.write_text(f"domains: [csg2d]\nprepare:\n  data_dir: {tmp_path}\n")
+    assert main(["--params", str(p), "--root", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found" in err
     p.write_text("prepare:\n  colour: red\n")

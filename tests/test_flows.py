@@ -4,6 +4,8 @@ import json
 import numpy as np
 import pytest
 
+from plad.layout import Layout
+
 
 @pytest.fixture(scope="module")
 def prefect_harness(tmp_path_factory):
@@ -18,58 +20,49 @@ def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness)
     from plad.data import load_prepared
 
     params = tmp_path / "params.yaml"
-    params.write_text(f"prepare:\n  data_dir: {datasets_dir}\n  out_dir: {tmp_path / 'out'}\n"
-                      f"  domains: [csg2d, csg3d, shapeassembly]\n  limit: {{partnet: 3}}\n")
-    result = prepare_data(str(params))
+    params.write_text(f"domains: [csg2d, csg3d, shapeassembly]\n"
+                      f"prepare:\n  data_dir: {datasets_dir}\n  limit: {{partnet: 3}}\n")
+    result = prepare_data(str(params), str(tmp_path))
+    out = tmp_path / "data" / "prepared"
     assert result["domains"]["csg2d"]["val_count"] == 3000
     assert result["sources"]["partnet"]["listed"] == {"train": 3, "val": 3, "test": 3}
     for domain in ("csg2d", "csg3d", "shapeassembly"):
-        assert json.loads((tmp_path / "out" / f"{domain}.json").read_text()) == result["domains"][domain]
-    assert load_prepared(tmp_path / "out" / "csg2d.npz", "val").shape == (3000, 64, 64)
+        assert json.loads((out / f"{domain}.json").read_text()) == result["domains"][domain]
+    assert load_prepared(out / "csg2d.npz", "val").shape == (3000, 64, 64)
     # one PartNet build (one task) feeds both 3D domains
-    assert np.array_equal(load_prepared(tmp_path / "out" / "csg3d.npz", "test"),
-                          load_prepared(tmp_path / "out" / "shapeassembly.npz", "test"))
+    assert np.array_equal(load_prepared(out / "csg3d.npz", "test"), load_prepared(out / "shapeassembly.npz", "test"))
 
 
 SMOKE_PARAMS = """
+domains: [csg2d]
 finetune:
   csg2d:
-    domain: csg2d
-    checkpoint: {ckpt}
-    prepared_dir: {prepared}
-    out_dir: unused
     train_limit: 24
     val_limit: 6
     max_minutes: 5
     methods:
-      lest_st_ws: {{method: lest+st+ws}}
-      st: {{method: st}}
+      lest_st_ws: {method: lest+st+ws}
+      st: {method: st}
     plad:
       infer_beam: 2
       infer_batch: 12
       val_beam_epoch: 1
       val_beam_round: 2
       max_rounds: 2
-      train: {{batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}}
-      ws: {{latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}}
+      train: {batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}
+      ws: {latent: 4, hidden: 8, batch_size: 8, max_epochs: 1, sample_batch: 32}
 evaluate:
   csg2d:
-    domain: csg2d
-    checkpoint: {ckpt}
-    prepared_dir: {prepared}
-    out_dir: unused
     limit: 6
     beam: 2
 report:
-  domains: [csg2d]
-  per_round: {{}}
+  per_round: {}
 flows:
   methods: [lest_st_ws]
   shards: 3
   threads_per_task: 1
   cron: "*/30 * * * *"
   deployment: plad-retrain-test
-  out_dir: {flows_out}
 """
 
 
@@ -82,27 +75,27 @@ def smoke_params(tmp_path_factory, datasets_dir):
     from plad.model import ModelConfig, PLADNet
     from plad.stages.prepare import PrepareConfig, prepare
 
-    root = tmp_path_factory.mktemp("flow")
-    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"], out_dir=str(root / "prepared")))
+    root = tmp_path_factory.mktemp("flow")   # the layout root of a project with a pretrained model
+    layout = Layout(root)
+    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"]), layout)
     domain = get_domain("csg2d")
     torch.manual_seed(0)
     model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
                                 input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
                                 enc_channels=(4, 4, 8, 8)))
-    save_checkpoint(root / "sp.pt", model, "csg2d", domain.tokens.names)
+    save_checkpoint(layout.model("csg2d"), model, "csg2d", domain.tokens.names)
     params = root / "params.yaml"
-    params.write_text(SMOKE_PARAMS.format(ckpt=root / "sp.pt", prepared=root / "prepared",
-                                          flows_out=root / "flows"))
+    params.write_text(SMOKE_PARAMS)
     return params
 
 
 def test_retraining_schedule_is_defined_by_the_params(smoke_params):
     from flows.finetune import deployment
 
-    dep = deployment(str(smoke_params))
+    dep = deployment(str(smoke_params), str(smoke_params.parent))
     assert dep.name == "plad-retrain-test"
     assert [s.schedule.cron for s in dep.schedules] == ["*/30 * * * *"]
-    assert dep.parameters == {"params_path": str(smoke_params.resolve())}
+    assert dep.parameters == {"params_path": str(smoke_params.resolve()), "root": str(smoke_params.parent.resolve())}
 
 
 def test_sharded_inference_equals_one_batch(smoke_params):
@@ -112,8 +105,9 @@ def test_sharded_inference_equals_one_batch(smoke_params):
     from plad.domains import get_domain
     from plad.search import infer_batched
 
-    model, _ = load_model(smoke_params.parent / "sp.pt")
-    shapes = load_prepared(smoke_params.parent / "prepared" / "csg2d.npz", "val")[:10]
+    layout = Layout(smoke_params.parent)
+    model, _ = load_model(layout.model("csg2d"))
+    shapes = load_prepared(layout.prepared("csg2d"), "val")[:10]
     whole = infer_batched(model, get_domain("csg2d"), shapes, 2, 10)
     parts = [_infer_shard(model, "csg2d", shapes[i:i + 4], 2, 10, None) for i in range(0, 10, 4)]
     assert np.allclose(whole[0], np.concatenate([p[0] for p in parts]), atol=1e-9)
@@ -126,12 +120,14 @@ def test_finetune_flow_runs_rounds_as_tasks_and_reports(smoke_params, prefect_ha
     from flows.finetune import finetune_flow
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
-    out = finetune_flow(str(smoke_params), run_name="once")
-    root = smoke_params.parent / "flows" / "once"
+    out = finetune_flow(str(smoke_params), run_name="once", root=str(smoke_params.parent))
+    run = Layout(smoke_params.parent).flow_run("once")
+    assert run.root == smoke_params.parent / "runs" / "flows" / "once" and out["out_dir"] == str(run.root)
     summary = out["methods"]["lest_st_ws"]
     assert summary["units"] == 2 and np.isfinite(summary["test"])
-    assert (root / "finetune" / "csg2d" / "lest_st_ws" / "ws_round_002.npz").exists()
-    table = (root / "results" / "table.md").read_text()
+    assert (run.finetune_dir("csg2d", "lest_st_ws") / "ws_round_002.npz").exists()
+    assert (run.eval_dir("sp", "csg2d") / "metrics.json").exists()
+    table = (run.results_dir / "table.md").read_text()
     assert "| LEST+ST+WS |" in table and "| SP |" in table
     with get_client(sync_client=True) as client:
         names = [t.name for t in client.read_task_runs()]

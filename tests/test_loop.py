@@ -1,12 +1,14 @@
 """The one budgeted, resumable loop: direction, patience, budget, resume after a kill, old files."""
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from plad import loop as loop_module
+from plad.layout import Layout
 from plad.loop import JsonStore, Limits, Loop, Objective, Unit, read_state, upgrade_state, upgrade_summary
 from plad.metrics import IOU
 
@@ -183,13 +185,16 @@ def test_files_of_earlier_versions_read_into_the_schema():
 def test_report_reads_the_committed_summaries_and_old_state_files(tmp_path):
     from plad.report import from_files
 
-    state = tmp_path / "finetune" / "csg2d" / "lest_st" / "state.json"
+    layout = Layout(tmp_path)
+    state = layout.finetune_dir("csg2d", "lest_st") / "state.json"
     state.parent.mkdir(parents=True)
     state.write_text(json.dumps({"round": 1, "best": 1.9, "best_round": 1, "epochs_since_best": 0, "seconds": 300.0,
                                  "history": [{"round": 0, "val_chamfer": 2.2, "seconds": 0.0},
                                              {"round": 1, "val_chamfer": 1.9, "seconds": 300.0}]}))
-    committed = json.loads((REPO / "results" / "finetune" / "csg2d" / "lest_st.json").read_text())
-    (r,) = from_files("csg2d", ["lest_st"], REPO / "results", tmp_path / "finetune")
+    committed = json.loads(Layout(REPO).finetune_summary("csg2d", "lest_st").read_text())
+    layout.finetune_summary("csg2d", "lest_st").parent.mkdir(parents=True)
+    shutil.copy(Layout(REPO).finetune_summary("csg2d", "lest_st"), layout.finetune_summary("csg2d", "lest_st"))
+    (r,) = from_files("csg2d", ["lest_st"], layout)
     assert r.curve == [(0.0, 2.2), (300.0, 1.9)]
     expected = upgrade_summary(committed)
     assert (r.rounds, r.val_best, r.stopped, r.train_seconds) == \

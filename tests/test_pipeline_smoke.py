@@ -1,4 +1,10 @@
-"""`dvc repro` of the whole pipeline with the smoke profile, in a temporary copy of the project."""
+"""The whole pipeline with the smoke profile, run as the README says, in a temporary copy of the project.
+
+The copy is a git repository of the project's files as they are in the working tree; the smoke profile
+runs there with ``dvc exp run --temp -S profile=smoke`` (the README's command), which must leave every
+committed file (the ``cpu`` results, ``dvc.lock``, ``params.yaml``) as it was. The experiment is then
+applied to the copy's workspace so that the tests below can read its outputs.
+"""
 import json
 import os
 import shutil
@@ -18,28 +24,39 @@ def run(cmd, cwd, env):
     return res
 
 
+def project_files() -> list[str]:
+    """The repository's files: committed or new, not ignored, present in the working tree."""
+    out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO_ROOT,
+                         capture_output=True, text=True, check=True).stdout
+    return sorted(f for f in set(out.split("\0")) if f and (REPO_ROOT / f).is_file())
+
+
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory, datasets_dir):
     work = tmp_path_factory.mktemp("pipeline")
-    for name in ("dvc.yaml", "profiles", "plad"):
-        src = REPO_ROOT / name
-        if src.is_dir():
-            shutil.copytree(src, work / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(src, work / name)
-    shutil.copy(REPO_ROOT / "profiles" / "smoke.yaml", work / "params.yaml")
+    for name in project_files():
+        (work / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO_ROOT / name, work / name)
     env = {**os.environ, "PLAD_DATA_DIR": str(datasets_dir), "DVC_NO_ANALYTICS": "1",
            "MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}", "GIT_AUTHOR_NAME": "t",
            "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
     env.pop("PLAD_PIPELINE_ID", None)
     run(["git", "init", "-q"], work, env)
-    run(["dvc", "init", "-q"], work, env)
-    res = run(["dvc", "repro"], work, env)
-    return work, env, res
+    run(["git", "add", "-A"], work, env)
+    run(["git", "commit", "-q", "-m", "the project"], work, env)
+    res = run(["dvc", "exp", "run", "--temp", "-S", "profile=smoke", "-n", "smoke"], work, env)
+    status = run(["git", "status", "--porcelain"], work, env).stdout
+    run(["dvc", "exp", "apply", "smoke"], work, env)
+    return work, env, res, status
+
+
+def test_smoke_profile_leaves_the_committed_files_alone(smoke_run):
+    *_, status = smoke_run
+    assert status == ""
 
 
 def test_smoke_repro_writes_metrics_and_grid(smoke_run):
-    work, _, _ = smoke_run
+    work, *_ = smoke_run
     metrics = json.loads((work / "results" / "eval" / "sp" / "csg2d" / "metrics.json").read_text())
     assert metrics["method"] == "sp" and metrics["metric"] == "chamfer" and metrics["beam"] == 10
     assert metrics["test"]["n"] == 20 and 0 <= metrics["test"]["mean"] <= 16
@@ -58,7 +75,7 @@ def test_smoke_repro_writes_metrics_and_grid(smoke_run):
 
 
 def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
-    work, env, _ = smoke_run
+    work, env, *_ = smoke_run
     import mlflow
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
@@ -89,7 +106,7 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
 
 
 def test_smoke_repro_is_up_to_date_afterwards(smoke_run):
-    work, env, _ = smoke_run
+    work, env, *_ = smoke_run
     res = run(["dvc", "status"], work, env)
     assert "changed" not in res.stdout
 
@@ -99,7 +116,7 @@ DOMAINS = ["csg2d", "csg3d", "shapeassembly"]
 
 
 def test_smoke_repro_writes_the_whole_table(smoke_run):
-    work, _, _ = smoke_run
+    work, *_ = smoke_run
     table = (work / "results" / "table.md").read_text()
     main = table.split("## Fine-tuning runs")[0]
     rows = [line.split("|")[1].strip() for line in main.splitlines() if line.startswith("| ") and "---" not in line]
@@ -122,15 +139,15 @@ def test_smoke_repro_writes_the_whole_table(smoke_run):
 
 
 def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
-    work, env, _ = smoke_run
-    out = tmp_path / "from_mlflow"
+    work, env, *_ = smoke_run
+    out = tmp_path / "from_mlflow"   # a root without any of the pipeline's files
     run(["python", "-m", "plad.stages.report", "--params", "params.yaml", "--set", "source=mlflow",
-         "--set", "register=false", "--set", f"out_dir={out}", "--set", "results_dir=/nonexistent"], work, env)
-    assert (out / "table.md").read_text() == (work / "results" / "table.md").read_text()
+         "--set", "register=false", "--root", str(out)], work, env)
+    assert (out / "results" / "table.md").read_text() == (work / "results" / "table.md").read_text()
 
 
 def test_report_registers_the_champion(smoke_run):
-    work, env, _ = smoke_run
+    work, env, *_ = smoke_run
     import mlflow
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])

@@ -7,34 +7,38 @@ import pytest
 from plad.config import ConfigError
 from plad.data import DataError, load_prepared
 from plad.datasets.cad import load_cad
+from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, main, prepare, prepare_sources, target_groups
 
 
 def test_domains_on_one_source_share_one_build(tmp_path, datasets_dir):
-    cfg = PrepareConfig(domains=["csg3d", "shapeassembly"], data_dir=str(datasets_dir), out_dir=str(tmp_path),
-                        limit={"partnet": 4})
-    result = prepare(cfg)
+    cfg = PrepareConfig(domains=["csg3d", "shapeassembly"], data_dir=str(datasets_dir), limit={"partnet": 4})
+    layout = Layout(tmp_path)
+    result = prepare(cfg, layout)
     assert result["sources"]["partnet"]["shapes"] == 12 and result["sources"]["partnet"]["failures"] == 0
-    report = json.loads((tmp_path / "partnet_voxels.json").read_text())
+    out = tmp_path / "data" / "prepared"
+    assert sorted(p.name for p in out.iterdir()) == ["csg3d.json", "csg3d.npz", "partnet_failures.log",
+                                                     "partnet_voxels.json", "partnet_voxels.npz",
+                                                     "shapeassembly.json", "shapeassembly.npz"]
+    report = json.loads((out / "partnet_voxels.json").read_text())
     assert report["listed"] == {"train": 4, "val": 4, "test": 4} and report["failures"] == []
-    assert (tmp_path / "partnet_failures.log").read_text() == ""
+    assert (out / "partnet_failures.log").read_text() == ""
     for split in ("train", "val", "test"):
-        shapes = load_prepared(tmp_path / "shapeassembly.npz", split)
+        shapes = load_prepared(layout.prepared("shapeassembly"), split)
         assert shapes.shape == (4, 32, 32, 32) and shapes.reshape(4, -1).any(1).all()
-        assert np.array_equal(load_prepared(tmp_path / "csg3d.npz", split), shapes)
+        assert np.array_equal(load_prepared(layout.prepared("csg3d"), split), shapes)
     for domain in ("csg3d", "shapeassembly"):
-        summary = json.loads((tmp_path / f"{domain}.json").read_text())
+        summary = json.loads(layout.prepared_summary(domain).read_text())
         assert summary == result["domains"][domain] and summary["source"] == "partnet_voxels.npz"
     # val and test alternate over the official val ids: no shape is in both
-    val, test = (load_prepared(tmp_path / "shapeassembly.npz", s) for s in ("val", "test"))
+    val, test = (load_prepared(layout.prepared("shapeassembly"), s) for s in ("val", "test"))
     assert not any(np.array_equal(a, b) for a in val for b in test)
 
 
 def test_a_limit_keeps_the_first_shapes_of_each_split(tmp_path, datasets_dir):
-    result = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), out_dir=str(tmp_path),
-                                   limit={"cad": 5}))
+    result = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), limit={"cad": 5}), Layout(tmp_path))
     assert result["domains"]["csg2d"]["test_count"] == 5
-    assert np.array_equal(load_prepared(tmp_path / "csg2d.npz", "test"), load_cad(datasets_dir, "test")[:5])
+    assert np.array_equal(load_prepared(Layout(tmp_path).prepared("csg2d"), "test"), load_cad(datasets_dir, "test")[:5])
 
 
 def test_groups_by_source_and_one_config_per_source():
@@ -46,22 +50,22 @@ def test_groups_by_source_and_one_config_per_source():
 
 def test_a_limit_of_a_source_no_domain_uses_is_an_error(tmp_path):
     with pytest.raises(ConfigError, match="'partnet' is not the target source of a configured domain"):
-        prepare(PrepareConfig(domains=["csg2d"], out_dir=str(tmp_path), limit={"partnet": 3}))
+        prepare(PrepareConfig(domains=["csg2d"], limit={"partnet": 3}), Layout(tmp_path))
 
 
 def test_missing_or_broken_tarball_is_a_clear_error(tmp_path):
-    cfg = PrepareConfig(domains=["shapeassembly"], data_dir=str(tmp_path), out_dir=str(tmp_path / "out"))
+    cfg = PrepareConfig(domains=["shapeassembly"], data_dir=str(tmp_path))
     with pytest.raises(DataError, match="partnet_programs.tar.gz"):
-        prepare(cfg)
+        prepare(cfg, Layout(tmp_path / "out"))
     (tmp_path / "shapeassembly_partnet").mkdir()
     (tmp_path / "shapeassembly_partnet" / "partnet_programs.tar.gz").write_bytes(b"not a tarball")
     with pytest.raises(DataError, match="not a readable .tar.gz"):
-        prepare(cfg)
+        prepare(cfg, Layout(tmp_path / "out"))
 
 
 def test_a_section_without_domains_is_a_one_line_error(tmp_path, capsys):
     p = tmp_path / "params.yaml"
-    p.write_text(f"prepare:\n  out_dir: {tmp_path / 'out'}\n")
-    assert main(["--params", str(p)]) == 1
+    p.write_text("prepare:\n  limit: {}\n")
+    assert main(["--params", str(p), "--root", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip()
     assert err == f"prepare: error: {p}: missing key(s) domains in 'prepare'"

@@ -71,6 +71,12 @@ def test_pipeline_tags_follow_params_bytes(tmp_path, monkeypatch):
     assert ta == pipeline_tags(a) == pipeline_tags(a2)
     assert ta["plad.pipeline"] != pipeline_tags(b)["plad.pipeline"]
     assert ta["plad.profile"] == "smoke" and ta["plad.git_rev"] == "nogit"  # tmp_path is no git repo
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "smoke.yaml").write_text("train: {lr: 0.01}\n")   # the profile's overrides count too
+    with_profile = pipeline_tags(a)["plad.pipeline"]
+    assert with_profile != ta["plad.pipeline"]
+    (tmp_path / "profiles" / "smoke.yaml").write_text("train: {lr: 0.02}\n")
+    assert pipeline_tags(a)["plad.pipeline"] not in (with_profile, ta["plad.pipeline"])
     b.write_text("train: {}\n")
     assert pipeline_tags(b)["plad.profile"] == "custom"
     monkeypatch.setenv("PLAD_PIPELINE_ID", "orchestrated-7")
@@ -263,3 +269,36 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys):
                            text=True, env=os.environ.copy())
     assert fresh.returncode == 0, fresh.stderr
     assert json.loads(fresh.stdout.strip().splitlines()[-1]) == list(out["program"])
+
+
+def test_a_stage_records_the_params_file_it_read(store, client, tmp_path, monkeypatch):
+    """``--params`` elsewhere than ./params.yaml: the run's tags come from that file (and its profile's)."""
+    import torch
+
+    from plad.checkpoint import save_checkpoint
+    from plad.data import write_prepared
+    from plad.domains import get_domain
+    from plad.layout import Layout
+    from plad.model import ModelConfig, PLADNet
+    from plad.stages import evaluate
+
+    domain = get_domain("csg2d")
+    layout = Layout(tmp_path / "project")
+    rng = np.random.default_rng(0)
+    splits = {s: rng.random((3, 64, 64)) < 0.3 for s in ("train", "val", "test")}
+    write_prepared("csg2d", (64, 64), splits, layout.prepared("csg2d"), layout.prepared_summary("csg2d"))
+    torch.manual_seed(0)
+    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len, input_shape=domain.shape,
+                                enc_channels=(4, 4, 8, 8), d_model=16, n_layers=1, n_heads=2, dim_ff=16))
+    save_checkpoint(layout.model("csg2d"), model, "csg2d", domain.tokens.names)
+    params = tmp_path / "elsewhere" / "other.yaml"
+    (params.parent / "profiles").mkdir(parents=True)
+    params.write_text("profile: tiny\nevaluate:\n  base: {beam: 1, batch_size: 3, grid_shapes: 2}\n  csg2d: {}\n")
+    (params.parent / "profiles" / "tiny.yaml").write_text("evaluate:\n  base: {beam: 2}\n")
+    monkeypatch.chdir(tmp_path)   # ./params.yaml does not exist here
+    assert evaluate.main(["--params", str(params), "--section", "evaluate.csg2d", "--root", str(layout.root)]) == 0
+    run_id = json.loads((layout.eval_dir("sp", "csg2d") / "mlflow_run.json").read_text())["run_id"]
+    run = client.get_run(run_id)
+    assert run.data.tags["plad.profile"] == "tiny" and run.data.params["beam"] == "2"
+    assert run.data.tags["plad.pipeline"] == pipeline_tags(params)["plad.pipeline"] != pipeline_tags("none.yaml")[
+        "plad.pipeline"]

@@ -28,6 +28,13 @@ def domain_names() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def plugin_module(name: str) -> str:
+    """The module :func:`get_domain` imports for ``name`` (e.g. ``plad.domains.csg2d``)."""
+    if name not in _REGISTRY:
+        raise KeyError(f"unknown domain {name!r}; known domains: {', '.join(domain_names())}")
+    return _REGISTRY[name].split(":")[0]
+
+
 def get_domain(name: str) -> Domain:
     """The (cached) domain instance registered under ``name``."""
     if name not in _REGISTRY:
@@ -38,4 +45,4 @@ def get_domain(name: str) -> Domain:
     return _INSTANCES[name]
 
 
-__all__ = ["Domain", "domain_names", "get_domain", "register"]
+__all__ = ["Domain", "domain_names", "get_domain", "plugin_module", "register"]

@@ -1,8 +1,10 @@
 """Stage ``evaluate``: best-of-beam reconstruction of real shapes with a trained p(z|x).
 
 For every configured split: beam search (beam 10 by default), execute all
-candidates, keep the best program per shape by the domain metric. Writes to
-``out_dir``: ``metrics.json`` (mean metric per split, with timing),
+candidates, keep the best program per shape by the domain metric. The model
+of ``method`` (``sp``: the pretrained one) is evaluated on the prepared
+shapes; writes to ``results/eval/<method>/<domain>/`` (:mod:`plad.layout`):
+``metrics.json`` (mean metric per split, with timing),
 ``<split>_programs.csv`` (index, metric value, program text per shape) and
 ``grid.png`` (target | reconstruction for a fixed, evenly spaced set of test
 shapes).
@@ -15,7 +17,6 @@ import json
 import sys
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -25,19 +26,18 @@ from plad.data import load_prepared
 from plad.device import resolve_device
 from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
+from plad.layout import GRID, METRICS, SP, Layout, programs_csv
 from plad.pictures import pair_grid, save_png
 from plad.search import infer_batched
-from plad.stages import stage_main
+from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun
 
 
 @dataclass
 class EvaluateConfig:
     domain: str = field(kw_only=True)
-    #: the method whose model is evaluated (a row of the results table)
-    method: str = "sp"
-    checkpoint: str = field(kw_only=True)
-    prepared_dir: str = "data/prepared"
+    #: the method whose model is evaluated (a row of the results table; set per DVC stage)
+    method: str = SP
     splits: list[str] = field(default_factory=lambda: ["test"])
     beam: int = 10
     batch_size: int = 100
@@ -46,7 +46,6 @@ class EvaluateConfig:
     grid_shapes: int = 16
     device: str = "auto"
     threads: int | None = None
-    out_dir: str = field(kw_only=True)
 
 
 def grid_indices(n: int, k: int) -> np.ndarray:
@@ -54,19 +53,20 @@ def grid_indices(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, num=min(k, n)).round().astype(int)) if n else np.zeros(0, int)
 
 
-def evaluate(cfg: EvaluateConfig) -> dict:
+def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device)
-    model, name = load_model(cfg.checkpoint, device, expect_domain=cfg.domain)
+    checkpoint = layout.model(cfg.domain, cfg.method)
+    model, name = load_model(checkpoint, device, expect_domain=cfg.domain)
     domain = get_domain(name)
-    out = Path(cfg.out_dir)
+    out = layout.eval_dir(cfg.method, cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"domain": cfg.domain, "method": cfg.method, "metric": domain.metric.name,
                     "higher_is_better": domain.metric.higher_is_better, "beam": cfg.beam,
-                    "checkpoint": str(cfg.checkpoint)}
+                    "checkpoint": str(checkpoint)}
     for split in cfg.splits:
-        targets = load_prepared(Path(cfg.prepared_dir) / f"{cfg.domain}.npz", split)
+        targets = load_prepared(layout.prepared(cfg.domain), split)
         if cfg.limit is not None:
             targets = targets[: cfg.limit]
         start = time.monotonic()
@@ -80,22 +80,22 @@ def evaluate(cfg: EvaluateConfig) -> dict:
         writer.writerow(["index", domain.metric.name, "program"])
         for i, (v, p) in enumerate(zip(values, programs)):
             writer.writerow([i, f"{v:.6f}", domain.format(p)])
-        atomic_write_text(out / f"{split}_programs.csv", buf.getvalue())
+        atomic_write_text(out / programs_csv(split), buf.getvalue())
         if split == cfg.splits[-1]:
             idx = grid_indices(len(targets), cfg.grid_shapes)
-            save_png(pair_grid(targets[idx], shapes[idx]), out / "grid.png")
-    atomic_write_text(out / "metrics.json", json.dumps(report, indent=2) + "\n")
+            save_png(pair_grid(targets[idx], shapes[idx]), out / GRID)
+    atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     return report
 
 
-def tracked_evaluate(cfg: EvaluateConfig) -> dict:
+def tracked_evaluate(cfg: EvaluateConfig, ctx: StageContext = StageContext()) -> dict:
     """:func:`evaluate` as an MLflow run: the metric per split and the outputs as artifacts."""
-    read_checkpoint(cfg.checkpoint)  # a missing or bad checkpoint fails before any MLflow run starts
-    out = Path(cfg.out_dir)
-    with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=cfg.method) as run:
-        report = evaluate(cfg)
+    read_checkpoint(ctx.layout.model(cfg.domain, cfg.method))  # a missing or bad checkpoint fails before MLflow
+    out = ctx.layout.eval_dir(cfg.method, cfg.domain)
+    with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=cfg.method, params_path=ctx.params) as run:
+        report = evaluate(cfg, ctx.layout)
         run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
-        for name in ["metrics.json", "grid.png", *[f"{s}_programs.csv" for s in cfg.splits]]:
+        for name in [METRICS, GRID, *[programs_csv(s) for s in cfg.splits]]:
             run.log_artifact(out / name)
     return report
 

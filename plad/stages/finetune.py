@@ -4,9 +4,12 @@
 (``st``, ``lest``, ``ws``, ``lest+st``, ``lest+st+ws``, with optional weights)
 or ``rl`` (the REINFORCE baseline), and the P_BEST mode. Every method gets the
 same wall-clock budget (``max_minutes``) and the same model selection on the
-validation shapes. Writes to ``out_dir/<domain>/<key>/``: ``best.pt`` (the
-selected model), ``state.json`` (per-round history with wall-clock seconds),
-``summary.json``, and the method's resumable state (P_BEST, generator, ...).
+validation shapes. Starts from the pretrained model and the prepared shapes
+and writes to ``runs/finetune/<domain>/<key>/`` (:mod:`plad.layout`):
+``best.pt`` (the selected model), ``state.json`` (per-round history with
+wall-clock seconds), ``summary.json`` (also copied to
+``results/finetune/<domain>/<key>.json``), and the method's resumable state
+(P_BEST, generator, ...).
 A killed run, started again, resumes at its last finished round. The PLAD
 rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`.
 """
@@ -15,16 +18,16 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from plad.fsutil import atomic_write_text
+from plad.layout import BEST, STATE, SUMMARY, Layout
 from plad.methods import MethodConfig
 from plad.rl import RLConfig
 from plad.rounds import RoundHooks, RoundsConfig
-from plad.stages import stage_main
+from plad.stages import StageContext, stage_main
 
 
 @dataclass
@@ -32,11 +35,6 @@ class FinetuneStageConfig:
     domain: str = field(kw_only=True)
     #: which entry of ``methods`` this run trains (set per DVC stage)
     key: str | None = None
-    checkpoint: str = field(kw_only=True)
-    prepared_dir: str = "data/prepared"
-    out_dir: str = "runs/finetune"
-    #: where the run summary is copied for DVC metrics: <summary_dir>/<domain>/<key>.json
-    summary_dir: str = "results/finetune"
     device: str = "auto"
     threads: int | None = None
     seed: int = 0
@@ -71,15 +69,11 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
     return m
 
 
-def run_dir(cfg: FinetuneStageConfig) -> Path:
-    return Path(cfg.out_dir) / cfg.domain / str(cfg.key)
-
-
-def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
+def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np.ndarray, np.ndarray]:
     """(training shapes, validation shapes) of the real data, limited as configured."""
     from plad.data import load_prepared
 
-    path = Path(cfg.prepared_dir) / f"{cfg.domain}.npz"
+    path = layout.prepared(cfg.domain)
     train, val = load_prepared(path, "train"), load_prepared(path, "val")
     if cfg.train_limit is not None:
         train = train[: cfg.train_limit]
@@ -88,7 +82,7 @@ def load_shapes(cfg: FinetuneStageConfig) -> tuple[np.ndarray, np.ndarray]:
     return train, val
 
 
-def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) -> dict:
+def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: RoundHooks | None = None) -> dict:
     """Fine-tune one method (a pure function of the config and the files it names).
 
     ``hooks`` (optional) run the steps of a PLAD round and hear about each
@@ -107,11 +101,12 @@ def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) ->
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device)
-    model, name = load_model(cfg.checkpoint, device, expect_domain=cfg.domain)
+    model, name = load_model(layout.model(cfg.domain), device, expect_domain=cfg.domain)
     domain = get_domain(name)
-    train, val = load_shapes(cfg)
+    train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
-    job = Job(model, domain, train, val, run_dir(cfg), seed=cfg.seed, budget_seconds=budget_seconds(cfg.max_minutes))
+    job = Job(model, domain, train, val, layout.finetune_dir(cfg.domain, str(cfg.key)), seed=cfg.seed,
+              budget_seconds=budget_seconds(cfg.max_minutes))
     if spec.method == "rl":
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
@@ -120,23 +115,23 @@ def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) ->
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
     text = json.dumps(summary, indent=2) + "\n"
     out = job.out_dir
-    atomic_write_text(out / "summary.json", text)
-    atomic_write_text(Path(cfg.summary_dir) / cfg.domain / f"{cfg.key}.json", text)
+    atomic_write_text(out / SUMMARY, text)
+    atomic_write_text(layout.finetune_summary(cfg.domain, str(cfg.key)), text)
     return summary
 
 
-def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
+def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(), infer=None, step=None) -> dict:
     """:func:`finetune_stage` as one MLflow run, with a nested run per round (or RL epoch)."""
     from plad.checkpoint import read_checkpoint
     from plad.loop import read_state
     from plad.tracking import StageRun
 
     method_of(cfg)
-    read_checkpoint(cfg.checkpoint)  # fail on a bad checkpoint before any MLflow run starts
-    out = run_dir(cfg)
+    read_checkpoint(ctx.layout.model(cfg.domain))  # fail on a bad checkpoint before any MLflow run starts
+    out = ctx.layout.finetune_dir(cfg.domain, str(cfg.key))
     params = asdict(cfg)
     params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only
-    with StageRun("finetune", cfg.domain, params, out, method=cfg.key) as run:
+    with StageRun("finetune", cfg.domain, params, out, method=cfg.key, params_path=ctx.params) as run:
         epochs: list[tuple[int, dict]] = []
 
         def on_epoch(rnd: int, epoch: int, metrics: dict) -> None:
@@ -153,12 +148,13 @@ def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
                     child.log_metrics({k: float(v) for k, v in m.items() if np.isfinite(v)}, step=e)
             epochs.clear()
 
-        summary = finetune_stage(cfg, RoundHooks(infer=infer, step=step, on_unit=on_round, on_epoch=on_epoch))
-        start = read_state(out / "state.json").history[0]   # the pretrained model's validation metric, at 0 s
+        summary = finetune_stage(cfg, ctx.layout,
+                                 RoundHooks(infer=infer, step=step, on_unit=on_round, on_epoch=on_epoch))
+        start = read_state(out / STATE).history[0]   # the pretrained model's validation metric, at 0 s
         run.log_metrics({"val_at_seconds": start["val"]}, step=0)
         run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
         run.set_tags({"plad.stopped": summary["stopped"]})
-        for name in ["summary.json", "state.json", "best.pt"]:
+        for name in [SUMMARY, STATE, BEST]:
             run.log_artifact(out / name)
         final = out / ("learner.pt" if cfg.methods[cfg.key].method == "rl" else "current.pt")
         if final.exists():

@@ -5,15 +5,16 @@ Each domain names where its real shapes come from (its target source,
 domains is prepared once from the data directory (a published file is
 checked against its sha256; PartNet's programs are executed and voxelized,
 with a report and a failures log, see :mod:`plad.datasets.partnet.dataset`),
-and its splits are written as ``<out_dir>/<domain>.npz`` (bit-packed) plus
-``<out_dir>/<domain>.json`` (counts and occupancy) for every domain on it,
-atomically (:func:`plad.data.write_prepared`).
+and its splits are written as ``data/prepared/<domain>.npz`` (bit-packed) plus
+``data/prepared/<domain>.json`` (counts and occupancy) for every domain on it
+(:mod:`plad.layout`), atomically (:func:`plad.data.write_prepared`).
 """
 from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field, replace
 
+from plad.layout import Layout
 from plad.stages import stage_main
 
 
@@ -23,7 +24,6 @@ class PrepareConfig:
     domains: list[str] = field(kw_only=True)
     #: directory holding the datasets; null means $PLAD_DATA_DIR, else ./data/datasets
     data_dir: str | None = None
-    out_dir: str = "data/prepared"
     #: target source name -> keep only the first N shapes of each split (smoke runs); a source not named: all
     limit: dict[str, int] = field(default_factory=dict)
 
@@ -38,7 +38,7 @@ def target_groups(domains: list[str]) -> dict[str, list[str]]:
     return groups
 
 
-def prepare(cfg: PrepareConfig) -> dict[str, dict]:
+def prepare(cfg: PrepareConfig, layout: Layout = Layout()) -> dict[str, dict]:
     """Prepare each target source of ``cfg.domains`` once and write its splits for every domain on it.
 
     Returns ``{"domains": {domain: summary}, "sources": {source: report}}``.
@@ -57,14 +57,15 @@ def prepare(cfg: PrepareConfig) -> dict[str, dict]:
     out: dict[str, dict] = {"domains": {}, "sources": {}}
     for source_name, names in groups.items():
         domains = [get_domain(name) for name in names]
-        prepared = domains[0].targets.prepare(cfg.data_dir, cfg.out_dir, cfg.limit.get(source_name))
+        prepared = domains[0].targets.prepare(cfg.data_dir, layout.prepared_dir, cfg.limit.get(source_name))
         for domain in domains:
             got = prepared.splits["train"].shape[1:]
             if tuple(domain.shape) != got:
                 raise ValueError(f"domain {domain.name} works on {domain.shape}, its target source "
                                  f"{source_name} gives {got}")
-            out["domains"][domain.name] = write_prepared(domain.name, tuple(domain.shape), prepared.splits,
-                                                         cfg.out_dir, prepared.provenance)
+            out["domains"][domain.name] = write_prepared(
+                domain.name, tuple(domain.shape), prepared.splits, layout.prepared(domain.name),
+                layout.prepared_summary(domain.name), prepared.provenance)
         out["sources"][source_name] = prepared.report
     return out
 
@@ -76,7 +77,8 @@ def prepare_sources(cfg: PrepareConfig) -> list[PrepareConfig]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return stage_main("prepare", PrepareConfig, prepare, argv, __doc__.splitlines()[0])
+    return stage_main("prepare", PrepareConfig, lambda cfg, ctx: prepare(cfg, ctx.layout), argv,
+                      __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -5,8 +5,9 @@ the fly. Early stopping and the learning-rate schedule follow the
 validation loss on the held-out synthetic programs; the greedy-decoding
 metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 
-Outputs in ``<out_dir>/<domain>/``: ``best.pt`` (the model), ``last.pt``
-(resume state), ``history.csv`` (per-epoch metrics), ``summary.json``.
+Outputs in ``runs/pretrain/<domain>/`` (:mod:`plad.layout`): ``best.pt``
+(the model), ``last.pt`` (resume state), ``history.csv`` (per-epoch
+metrics), ``summary.json``.
 """
 from __future__ import annotations
 
@@ -26,17 +27,16 @@ from plad.config import ConfigError
 from plad.device import resolve_device
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
+from plad.layout import BEST, HISTORY, LAST, SUMMARY, Layout
 from plad.loop import budget_seconds
 from plad.model import Architecture, ModelConfig, PLADNet, count_parameters
-from plad.stages import stage_main
+from plad.stages import StageContext, stage_main
 from plad.train import TrainConfig, fit
 
 
 @dataclass
 class PretrainConfig:
     domain: str = field(kw_only=True)
-    synthetic_dir: str = "data/synthetic"
-    out_dir: str = "runs/pretrain"
     #: "auto" (CUDA when present), "cpu" or "cuda"
     device: str = "auto"
     #: torch CPU threads (None: torch's default)
@@ -63,7 +63,7 @@ def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[to
     return domain.execute(programs), programs, lengths
 
 
-def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
+def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> dict:
     """Train p(z|x) on the domain's synthetic programs; returns the summary (also written to disk)."""
     from plad.domains import get_domain
     from plad.search import greedy_decode
@@ -73,12 +73,12 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    data = load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")
+    data = load_programs(layout.synthetic(cfg.domain))
     train, val = data["train"], data["val"]
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
-    out = Path(cfg.out_dir) / cfg.domain
+    out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
-    history = out / "history.csv"
+    history = out / HISTORY
     bs = cfg.train.batch_size
 
     def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
@@ -124,7 +124,7 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
-    last = out / "last.pt"
+    last = out / LAST
     if not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint:
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
@@ -135,23 +135,23 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
                **{k: round(v, 6) for k, v in final.items()}}
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
     return summary
 
 
-def tracked_pretrain(cfg: PretrainConfig) -> dict:
+def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) -> dict:
     """:func:`pretrain` as an MLflow run: per-epoch metrics, outputs and the model."""
     from plad.tracking import StageRun
 
-    load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")  # fail before any MLflow run starts
-    out = Path(cfg.out_dir) / cfg.domain
-    with StageRun("pretrain", cfg.domain, asdict(cfg), out) as run:
-        summary = pretrain(cfg, on_epoch=lambda e, m: run.log_metrics(m, step=e))
+    load_programs(ctx.layout.synthetic(cfg.domain))  # fail before any MLflow run starts
+    out = ctx.layout.pretrain_dir(cfg.domain)
+    with StageRun("pretrain", cfg.domain, asdict(cfg), out, params_path=ctx.params) as run:
+        summary = pretrain(cfg, ctx.layout, on_epoch=lambda e, m: run.log_metrics(m, step=e))
         run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
-        run.log_artifact(out / "summary.json")
-        run.log_artifact(out / "history.csv")
-        run.log_artifact(out / "best.pt", "checkpoint")
-        run.log_model(out / "best.pt")
+        run.log_artifact(out / SUMMARY)
+        run.log_artifact(out / HISTORY)
+        run.log_artifact(out / BEST, "checkpoint")
+        run.log_model(out / BEST)
     return summary
 
 

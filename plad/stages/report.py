@@ -12,14 +12,14 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 from plad.config import ConfigError
 from plad.data import DataError
 from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
+from plad.layout import CONVERGENCE, REPORT, SP, TABLE, Layout
 from plad.report import convergence_png, from_files, from_mlflow, table_markdown
-from plad.stages import stage_main
+from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, set_champion, set_version_tags
 
 
@@ -31,11 +31,6 @@ class ReportConfig:
     methods: list[str] = field(default_factory=lambda: ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws"])
     #: all-time method key -> its per-round variant, for the P_BEST comparison
     per_round: dict[str, str] = field(default_factory=lambda: {"lest_st": "lest_st_per_round"})
-    results_dir: str = "results"
-    finetune_dir: str = "runs/finetune"
-    #: SP models: <pretrain_dir>/<domain>/best.pt
-    pretrain_dir: str = "runs/pretrain"
-    out_dir: str = "results"
     #: where the numbers come from: "files" (the pipeline's outputs) or "mlflow"
     source: str = "files"
     #: register the best model (by validation) in the MLflow registry with alias "champion"
@@ -43,11 +38,11 @@ class ReportConfig:
     profile: str | None = None
 
 
-def gather(cfg: ReportConfig) -> dict:
+def gather(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
     """{domain: [MethodResult per method]} from the configured source."""
     keys = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values()]))
     if cfg.source == "files":
-        return {d: from_files(d, keys, cfg.results_dir, cfg.finetune_dir) for d in cfg.domains}
+        return {d: from_files(d, keys, layout) for d in cfg.domains}
     if cfg.source == "mlflow":
         return {d: from_mlflow(d, keys) for d in cfg.domains}
     raise ConfigError(f"report.source {cfg.source!r}: expected files or mlflow")
@@ -64,8 +59,8 @@ def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | Non
         if r.key in cfg.per_round.values():
             continue
         if r.curve:
-            candidates.append(("sp", r.curve[0][1]))
-        if r.val_best is not None and r.key != "sp":
+            candidates.append((SP, r.curve[0][1]))
+        if r.val_best is not None and r.key != SP:
             candidates.append((r.key, r.val_best))
     best = None
     for key, v in candidates:
@@ -74,17 +69,17 @@ def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | Non
     return best
 
 
-def report(cfg: ReportConfig) -> dict:
-    results = gather(cfg)
+def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
+    results = gather(cfg, layout)
     missing = [f"{d}/{r.key}" for d, rs in results.items() for r in rs if r.test is None]
     if missing:
-        where = "MLflow" if cfg.source == "mlflow" else cfg.results_dir
+        where = "MLflow" if cfg.source == "mlflow" else layout.results_dir
         raise DataError(where, f"no test evaluation for {', '.join(missing)}")
-    out = Path(cfg.out_dir)
+    out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "table.md", table_markdown(results, cfg.methods, cfg.per_round, cfg.profile))
+    atomic_write_text(out / TABLE, table_markdown(results, cfg.methods, cfg.per_round, cfg.profile))
     convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
-                    out / "convergence.png")
+                    out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
     for d, rs in results.items():
         entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs}}
@@ -92,30 +87,28 @@ def report(cfg: ReportConfig) -> dict:
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}
         summary["domains"][d] = entry
-    atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
     return summary
 
 
-def tracked_report(cfg: ReportConfig) -> dict:
+def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dict:
     """:func:`report` as an MLflow run; registers each domain's champion as ``plad-<domain>@champion``."""
-    out = Path(cfg.out_dir)
-    with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run") as run:
-        summary = report(cfg)
-        for name in ["table.md", "convergence.png", "report.json"]:
+    out = ctx.layout.results_dir
+    with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run", params_path=ctx.params) as run:
+        summary = report(cfg, ctx.layout)
+        for name in [TABLE, CONVERGENCE, REPORT]:
             run.log_artifact(out / name)
         if cfg.register:
             for d, entry in summary["domains"].items():
                 if "champion" not in entry:
                     continue
                 key = entry["champion"]["method"]
-                base = Path(cfg.pretrain_dir) if key == "sp" else Path(cfg.finetune_dir)
-                ckpt = base / d / "best.pt" if key == "sp" else base / d / key / "best.pt"
                 name = f"plad-{d}"
-                version = run.log_model(ckpt, registered_name=name).rsplit("/", 1)[-1]
+                version = run.log_model(ctx.layout.model(d, key), registered_name=name).rsplit("/", 1)[-1]
                 set_champion(name, version)
                 set_version_tags(name, version, {"plad.method": key, "plad.test": entry["test"].get(key)})
                 entry["champion"].update(model=f"models:/{name}@champion", version=version)
-            atomic_write_text(out / "report.json", json.dumps(summary, indent=2) + "\n")
+            atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
     return summary
 
 

@@ -1,6 +1,6 @@
 """Stage ``synthesize``: sample the synthetic pretraining programs of a domain.
 
-Writes ``<out_dir>/<domain>.npz`` with ``train``/``val`` token arrays
+Writes ``data/synthetic/<domain>.npz`` (:mod:`plad.layout`) with ``train``/``val`` token arrays
 (N, max_len) int16 padded with -1, drawn with a fixed seed (train and val
 from independent streams). Shapes are not stored: the executor renders them
 on the fly far faster than they could be read back.
@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from plad.fsutil import atomic_write, atomic_write_text
+from plad.layout import Layout
 from plad.stages import stage_main
 
 
@@ -25,7 +25,6 @@ class SynthesizeConfig:
     train_programs: int = 100_000
     val_programs: int = 1_000
     seed: int = 0
-    out_dir: str = "data/synthetic"
 
 
 def to_array(programs: list[list[int]], max_len: int) -> np.ndarray:
@@ -39,7 +38,7 @@ def from_array(array: np.ndarray) -> list[list[int]]:
     return [row[row >= 0].tolist() for row in array]
 
 
-def synthesize(cfg: SynthesizeConfig, chunk: int = 10_000) -> dict:
+def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10_000) -> dict:
     from plad.domains import get_domain
 
     domain = get_domain(cfg.domain)
@@ -50,17 +49,17 @@ def synthesize(cfg: SynthesizeConfig, chunk: int = 10_000) -> dict:
         for start in tqdm(range(0, n, chunk), desc=f"synthesize {split}", unit="chunk", disable=None):
             parts.append(to_array(domain.sample(min(chunk, n - start), rng), domain.tokens.max_len))
         arrays[split] = np.concatenate(parts) if parts else np.zeros((0, domain.tokens.max_len), np.int16)
-    out = Path(cfg.out_dir)
-    atomic_write(out / f"{cfg.domain}.npz", lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)
     summary = {"domain": cfg.domain, "train": int(len(arrays["train"])), "val": int(len(arrays["val"])),
                "mean_length": round(float(lengths.mean()), 3) if len(lengths) else 0.0}
-    atomic_write_text(out / f"{cfg.domain}.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(layout.synthetic_summary(cfg.domain), json.dumps(summary, indent=2) + "\n")
     return summary
 
 
 def main(argv: list[str] | None = None) -> int:
-    return stage_main("synthesize", SynthesizeConfig, synthesize, argv, __doc__.splitlines()[0])
+    return stage_main("synthesize", SynthesizeConfig, lambda cfg, ctx: synthesize(cfg, ctx.layout), argv,
+                      __doc__.splitlines()[0])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -19,6 +19,7 @@ from typing import Any
 
 import yaml
 
+from plad.config import profile_path
 from plad.fsutil import atomic_write_text
 from plad.tracking.serving import log_pyfunc
 from plad.tracking.store import (
@@ -50,16 +51,15 @@ def _git_rev(cwd: Path) -> str:
 def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, str]:
     """Tags shared by the runs of one ``dvc repro``.
 
-    ``plad.pipeline``: short hash of the params file bytes and the git revision
-    (HEAD of the repository holding the params file, or ``nogit``), or
-    ``$PLAD_PIPELINE_ID`` when set; ``plad.git_rev``; ``plad.profile``: the
-    params file's top-level ``profile`` value, else ``custom``.
+    ``plad.pipeline``: short hash of the params file bytes, those of its
+    profile's override file (:func:`plad.config.profile_path`) and the git
+    revision (HEAD of the repository holding the params file, or ``nogit``),
+    or ``$PLAD_PIPELINE_ID`` when set; ``plad.git_rev``; ``plad.profile``:
+    the params file's top-level ``profile`` value, else ``custom``.
     """
     path = Path(params_path)
     data = path.read_bytes() if path.is_file() else b""
     rev = _git_rev(path.resolve().parent if path.parent.is_dir() else Path.cwd())
-    pipeline = os.environ.get("PLAD_PIPELINE_ID") or \
-        hashlib.sha256(data + b"\0" + rev.encode()).hexdigest()[:12]
     profile = "custom"
     if data:
         try:
@@ -68,6 +68,11 @@ def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, s
             parsed = None
         if isinstance(parsed, dict) and parsed.get("profile") is not None:
             profile = str(parsed["profile"])
+    overrides = profile_path(path, profile)
+    if profile != "custom" and overrides.is_file():
+        data += b"\0" + overrides.read_bytes()
+    pipeline = os.environ.get("PLAD_PIPELINE_ID") or \
+        hashlib.sha256(data + b"\0" + rev.encode()).hexdigest()[:12]
     return {"plad.pipeline": pipeline, "plad.git_rev": rev, "plad.profile": profile}
 
 

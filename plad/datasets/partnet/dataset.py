@@ -216,6 +216,7 @@ class PartNetTargets(TargetSource):
     """The PartNet shapes: read from the prepared file, or built from the programs by the ``prepare`` stage."""
 
     name = "partnet"
+    files = (PREPARED_NAME, REPORT_NAME, FAILURES_NAME)
 
     def load(self, split: str, data_dir: str | os.PathLike | None = None) -> np.ndarray:
         return load_split(split, data_dir)

@@ -1,0 +1,117 @@
+"""Where the pipeline's artifacts live: the one home of every artifact path.
+
+Stages, flows and the report derive their files from a :class:`Layout` (a
+root, by default the working directory, plus the domain and method); params
+hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
+``tests/test_dvc_deps.py`` checks that it does::
+
+    data/prepared/<domain>.npz, <domain>.json    real target shapes (stage prepare; plus each
+                                                 target source's own files, e.g. partnet_voxels.npz)
+    data/synthetic/<domain>.npz, <domain>.json   synthetic pretraining programs (synthesize@<domain>)
+    runs/pretrain/<domain>/                      pretraining: best.pt, last.pt, history.csv, summary.json
+    runs/finetune/<domain>/<method>/             fine-tuning: best.pt, state.json, summary.json, method state
+    results/finetune/<domain>/<method>.json      the fine-tuning summary again, as a DVC metric
+    results/eval/<method>/<domain>/              test evaluation: metrics.json, <split>_programs.csv, grid.png
+    results/table.md, convergence.png, report.json   the report
+    runs/flows/<run name>/                       a Prefect flow run: the same layout below it
+
+The pretrained model is the method ``sp`` (:data:`SP`): its model is
+``runs/pretrain/<domain>/best.pt``, its evaluation ``results/eval/sp/<domain>/``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+#: the method key of the pretrained (supervised) model, the first row of the results table
+SP = "sp"
+
+# file names inside a run folder, shared by the training loops that write them and the stages that read them
+BEST = "best.pt"          # the selected model
+LAST = "last.pt"          # pretraining's resume state
+STATE = "state.json"      # a fine-tuning run's loop state and history
+SUMMARY = "summary.json"  # a run's summary
+HISTORY = "history.csv"   # pretraining's per-epoch metrics
+# file names of a test evaluation and of the report
+METRICS = "metrics.json"
+GRID = "grid.png"
+TABLE = "table.md"
+CONVERGENCE = "convergence.png"
+REPORT = "report.json"
+
+
+def programs_csv(split: str) -> str:
+    """The per-shape programs of an evaluated split: ``<split>_programs.csv``."""
+    return f"{split}_programs.csv"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Artifact paths under ``root``.
+
+    ``upstream`` is where a run that starts from an existing pipeline reads
+    the prepared data, the synthetic programs and the pretrained models (a
+    Prefect flow run retrains from the project's, see :meth:`flow_run`);
+    ``None``: the same root.
+    """
+
+    root: Path = Path(".")
+    upstream: Path | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+        if self.upstream is not None:
+            object.__setattr__(self, "upstream", Path(self.upstream))
+
+    @property
+    def _start(self) -> Path:
+        return self.root if self.upstream is None else self.upstream
+
+    # -- data -------------------------------------------------------------------------------------
+    @property
+    def prepared_dir(self) -> Path:
+        return self._start / "data" / "prepared"
+
+    def prepared(self, domain: str) -> Path:
+        return self.prepared_dir / f"{domain}.npz"
+
+    def prepared_summary(self, domain: str) -> Path:
+        return self.prepared_dir / f"{domain}.json"
+
+    @property
+    def synthetic_dir(self) -> Path:
+        return self._start / "data" / "synthetic"
+
+    def synthetic(self, domain: str) -> Path:
+        return self.synthetic_dir / f"{domain}.npz"
+
+    def synthetic_summary(self, domain: str) -> Path:
+        return self.synthetic_dir / f"{domain}.json"
+
+    # -- training runs ----------------------------------------------------------------------------
+    def pretrain_dir(self, domain: str) -> Path:
+        return self._start / "runs" / "pretrain" / domain
+
+    def finetune_dir(self, domain: str, method: str) -> Path:
+        return self.root / "runs" / "finetune" / domain / method
+
+    def finetune_summary(self, domain: str, method: str) -> Path:
+        return self.root / "results" / "finetune" / domain / f"{method}.json"
+
+    def model(self, domain: str, method: str = SP) -> Path:
+        """The selected model of a method: pretraining's for :data:`SP`, else the fine-tuning run's."""
+        return (self.pretrain_dir(domain) if method == SP else self.finetune_dir(domain, method)) / BEST
+
+    # -- results ----------------------------------------------------------------------------------
+    def eval_dir(self, method: str, domain: str) -> Path:
+        return self.root / "results" / "eval" / method / domain
+
+    @property
+    def results_dir(self) -> Path:
+        """The report's folder: :data:`TABLE`, :data:`CONVERGENCE`, :data:`REPORT`."""
+        return self.root / "results"
+
+    # -- flow runs --------------------------------------------------------------------------------
+    def flow_run(self, name: str) -> Layout:
+        """The layout of a Prefect flow run: its outputs under ``runs/flows/<name>/``, its start here."""
+        return Layout(self.root / "runs" / "flows" / name, upstream=self._start)
