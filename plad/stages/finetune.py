@@ -8,7 +8,9 @@ validation shapes. Writes to ``out_dir/<domain>/<key>/``: ``best.pt`` (the
 selected model), ``state.json`` (per-round history with wall-clock seconds),
 ``summary.json``, and the method's resumable state (P_BEST, generator, ...).
 A killed run, started again, resumes at its last finished round. The PLAD
-rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`.
+rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`. Data-parallel
+on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
+(:mod:`plad.distributed`); rank 0 writes the outputs and the MLflow run.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.fsutil import atomic_write_text
 from plad.methods import MethodConfig
 from plad.rl import RLConfig
@@ -106,6 +109,7 @@ def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) ->
     hooks = hooks or RoundHooks()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    dist.init()   # under torchrun: join the other ranks (before the model goes to this rank's GPU)
     device = resolve_device(cfg.device)
     model, name = load_model(cfg.checkpoint, device, expect_domain=cfg.domain)
     domain = get_domain(name)
@@ -118,10 +122,10 @@ def finetune_stage(cfg: FinetuneStageConfig, hooks: RoundHooks | None = None) ->
         summary = run_rounds(job, spec, cfg.plad, hooks)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
-    text = json.dumps(summary, indent=2) + "\n"
-    out = job.out_dir
-    atomic_write_text(out / "summary.json", text)
-    atomic_write_text(Path(cfg.summary_dir) / cfg.domain / f"{cfg.key}.json", text)
+    if dist.is_main():
+        text = json.dumps(summary, indent=2) + "\n"
+        atomic_write_text(job.out_dir / "summary.json", text)
+        atomic_write_text(Path(cfg.summary_dir) / cfg.domain / f"{cfg.key}.json", text)
     return summary
 
 
@@ -133,6 +137,8 @@ def tracked_finetune(cfg: FinetuneStageConfig, infer=None, step=None) -> dict:
 
     method_of(cfg)
     read_checkpoint(cfg.checkpoint)  # fail on a bad checkpoint before any MLflow run starts
+    if not dist.is_main():   # one MLflow run per method, rank 0's
+        return finetune_stage(cfg, RoundHooks(infer=infer, step=step))
     out = run_dir(cfg)
     params = asdict(cfg)
     params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only

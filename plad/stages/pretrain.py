@@ -7,6 +7,10 @@ metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 
 Outputs in ``<out_dir>/<domain>/``: ``best.pt`` (the model), ``last.pt``
 (resume state), ``history.csv`` (per-epoch metrics), ``summary.json``.
+
+Data-parallel on N processes with ``torchrun --nproc-per-node N -m
+plad.stages.pretrain ...`` (:mod:`plad.distributed`): the ranks deal out the
+batches of each epoch's permutation in turn, and rank 0 writes the outputs.
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
 from plad.device import resolve_device
@@ -69,6 +74,7 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     from plad.search import greedy_decode
 
     domain = get_domain(cfg.domain)
+    dist.init()   # under torchrun: join the other ranks (before the model goes to this rank's GPU)
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -82,11 +88,11 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     bs = cfg.train.batch_size
 
     def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
-        # a stream fixed by (seed, epoch): a resumed run trains on the same batches
+        # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         while True:
             perm = torch.randperm(len(train), generator=gen)
-            for start in range(0, len(perm) - bs + 1, bs):
+            for start in dist.chunk_starts(len(perm), bs):
                 yield make_batch(domain, train[perm[start:start + bs]], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
@@ -125,7 +131,7 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
     last = out / "last.pt"
-    if not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint:
+    if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
@@ -135,7 +141,8 @@ def pretrain(cfg: PretrainConfig, on_epoch=None) -> dict:
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
                **{k: round(v, 6) for k, v in final.items()}}
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    if dist.is_main():
+        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 
@@ -144,6 +151,8 @@ def tracked_pretrain(cfg: PretrainConfig) -> dict:
     from plad.tracking import StageRun
 
     load_programs(Path(cfg.synthetic_dir) / f"{cfg.domain}.npz")  # fail before any MLflow run starts
+    if not dist.is_main():   # one MLflow run per training, rank 0's
+        return pretrain(cfg)
     out = Path(cfg.out_dir) / cfg.domain
     with StageRun("pretrain", cfg.domain, asdict(cfg), out) as run:
         summary = pretrain(cfg, on_epoch=lambda e, m: run.log_metrics(m, step=e))
