@@ -7,9 +7,10 @@ The flow calls the same functions as the DVC stages (``plad.stages.finetune``,
 ``plad.stages.evaluate``, ``plad.stages.report``); it only decides how the
 steps run. Each step of a round (inference, wake-sleep generator, training,
 validation) is a task; inference over the training shapes is split into
-``flows.shards`` tasks, with retries, that run in parallel on the flow's task
-runner: threads by default, a Dask cluster when ``flows.dask_address`` is set
-(through prefect-dask). Every flow run writes under
+``flows.shards`` tasks, with retries, that run in parallel: on the flow's
+threads by default, on a Dask cluster when ``flows.dask_address`` is set
+(through prefect-dask; chosen when the flow runs, so deployments honour it
+too). Every flow run writes under
 ``flows.out_dir/<run name>/`` so that scheduled retrainings never overwrite
 each other; a run started again with the same name resumes.
 """
@@ -68,9 +69,16 @@ def sharded_infer(domain_name: str, beam: int, batch: int, cfg: FlowsConfig):
 
     def infer(model, shapes: np.ndarray):
         parts = [p for p in np.array_split(np.arange(len(shapes)), max(1, cfg.shards)) if len(p)]
-        futures = [shard_task.submit(model, domain_name, shapes[p], beam, batch, cfg.threads_per_task)
-                   for p in parts]
-        results = [f.result() for f in futures]
+        calls = [{"model": model, "domain_name": domain_name, "shapes": shapes[p], "beam": beam, "batch": batch,
+                  "threads": cfg.threads_per_task} for p in parts]
+        if cfg.dask_address:
+            # a worker lost mid-shard: Dask runs the shard again on another worker
+            from prefect_dask import DaskTaskRunner
+
+            with DaskTaskRunner(address=cfg.dask_address) as runner:
+                results = [f.result() for f in [runner.submit(shard_task, c) for c in calls]]
+        else:
+            results = [f.result() for f in [shard_task.submit(**c) for c in calls]]
         values = np.concatenate([r[0] for r in results])
         programs = [p for r in results for p in r[1]]
         executions = np.concatenate([r[2] for r in results])
@@ -101,15 +109,31 @@ def run_configs(params: dict, source: str, run_name: str):
     return fcfg, ft, ev, rp, root
 
 
+def params_file(params_path: str, profile: str | None) -> str:
+    """``profiles/<profile>.yaml`` (relative to the working directory, the repository) when a profile is
+    named, else ``params_path``."""
+    if profile is None:
+        return params_path
+    path = Path("profiles") / f"{profile}.yaml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in Path("profiles").glob("*.yaml"))) or f"none in {Path.cwd()}"
+        raise ConfigError(f"profile {profile!r}: no such file {path} (profiles: {known})")
+    return str(path)
+
+
 @flow(name="plad-finetune")
 def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = None,
-                  run_name: str | None = None) -> dict:
-    """Fine-tune the configured methods, evaluate them on the test split, and write the report."""
+                  run_name: str | None = None, profile: str | None = None) -> dict:
+    """Fine-tune the configured methods, evaluate them on the test split, and write the report.
+
+    ``profile`` (smoke, cpu, paper) reads ``profiles/<profile>.yaml`` instead of ``params_path``.
+    """
     from plad.stages.evaluate import tracked_evaluate
     from plad.stages.finetune import tracked_finetune
     from plad.stages.report import report
 
     run_name = run_name or dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    params_path = params_file(params_path, profile)
     params = load_params(params_path)
     fcfg, ft, ev, rp, root = run_configs(params, params_path, run_name)
     keys = list(methods or fcfg.methods or ft.methods)
@@ -136,22 +160,11 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
     return out
 
 
-def with_runner(params_path: str):
-    """The flow with the task runner chosen by ``flows.dask_address``."""
-    params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
-    if fcfg.dask_address:
-        from prefect_dask import DaskTaskRunner
-
-        return finetune_flow.with_options(task_runner=DaskTaskRunner(address=fcfg.dask_address))
-    return finetune_flow
-
-
 def deployment(params_path: str):
     """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
     params = load_params(params_path)
     fcfg = section(params, "flows", FlowsConfig, params_path) if "flows" in params else FlowsConfig()
-    return with_runner(params_path).to_deployment(
+    return finetune_flow.to_deployment(
         name=fcfg.deployment, cron=fcfg.cron, parameters={"params_path": str(Path(params_path).resolve())})
 
 
@@ -168,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
 
         serve(deployment(args.params))
     else:
-        print(with_runner(args.params)(args.params, args.methods, args.run_name))
+        print(finetune_flow(args.params, args.methods, args.run_name))
 
 
 if __name__ == "__main__":
