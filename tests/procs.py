@@ -96,15 +96,28 @@ def children() -> set[int]:
     return {p.pid for p in psutil.Process().children(recursive=True)}
 
 
-def left_behind(before: set[int]) -> list[str]:
-    """Live processes that a test left: children of this process that were not there ``before``, and any
-    process still in a group started by :func:`start` (also those whose parent died). Pid and command."""
-    mine = children() - before
+def group(leader: int) -> list[str]:
+    """Live processes of the process group of ``leader`` (also those whose parent died): pid and command."""
     out = []
     for p in psutil.process_iter():
         try:
-            if (p.pid in mine or os.getpgid(p.pid) in STARTED) and p.status() != psutil.STATUS_ZOMBIE:
+            if os.getpgid(p.pid) == leader and p.status() != psutil.STATUS_ZOMBIE:
                 out.append(f"{p.pid} {' '.join(p.cmdline())[:120]}")
         except (psutil.NoSuchProcess, ProcessLookupError):
             pass
+    return out
+
+
+def left_behind(before: set[int]) -> list[str]:
+    """Live processes a test left: children of this process that were not there ``before``, and the
+    members of every group :func:`start` created since (leaders not in ``before``). Pid and command."""
+    out = []
+    for p in psutil.Process().children(recursive=True):
+        try:
+            if p.pid not in before and p.status() != psutil.STATUS_ZOMBIE:
+                out.append(f"{p.pid} {' '.join(p.cmdline())[:120]}")
+        except psutil.NoSuchProcess:
+            pass
+    for leader in STARTED - before:
+        out += [m for m in group(leader) if m not in out]
     return out
