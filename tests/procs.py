@@ -45,22 +45,25 @@ def start(cmd: list[str], env: dict[str, str], log: Path, cwd: Path | None = Non
 
 
 def stop(proc: subprocess.Popen, grace: float = 10.0) -> None:
-    """Stop ``proc`` and every process of its group: SIGTERM, then SIGKILL after ``grace`` seconds."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            pass
-        try:
-            proc.wait(timeout=grace)
-        except subprocess.TimeoutExpired:
-            continue
-        if sig == signal.SIGTERM:   # the leader is gone; its group may not be
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        return
+    """Stop ``proc`` and every process of its group: SIGTERM, SIGKILL to what is left after ``grace`` seconds
+    (or once the leader is gone: e.g. multiprocessing's resource tracker ignores SIGTERM), and wait until the
+    group is empty."""
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while group(proc.pid) and time.monotonic() < deadline:   # SIGKILL is delivered, not yet done
+        time.sleep(0.05)
 
 
 def run(cmd: list[str], env: dict[str, str], log: Path, timeout: float, cwd: Path | None = None) -> int:
@@ -96,13 +99,17 @@ def children() -> set[int]:
     return {p.pid for p in psutil.Process().children(recursive=True)}
 
 
+def describe(p: psutil.Process) -> str:
+    return f"pid {p.pid} (parent {p.ppid()}, group {os.getpgid(p.pid)}): {' '.join(p.cmdline())[:120]}"
+
+
 def group(leader: int) -> list[str]:
     """Live processes of the process group of ``leader`` (also those whose parent died): pid and command."""
     out = []
     for p in psutil.process_iter():
         try:
             if os.getpgid(p.pid) == leader and p.status() != psutil.STATUS_ZOMBIE:
-                out.append(f"{p.pid} {' '.join(p.cmdline())[:120]}")
+                out.append(describe(p))
         except (psutil.NoSuchProcess, ProcessLookupError):
             pass
     return out
@@ -115,7 +122,7 @@ def left_behind(before: set[int]) -> list[str]:
     for p in psutil.Process().children(recursive=True):
         try:
             if p.pid not in before and p.status() != psutil.STATUS_ZOMBIE:
-                out.append(f"{p.pid} {' '.join(p.cmdline())[:120]}")
+                out.append(describe(p))
         except psutil.NoSuchProcess:
             pass
     for leader in STARTED - before:

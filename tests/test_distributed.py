@@ -16,11 +16,12 @@ import pytest
 import torch
 
 from tests.procs import REPO_ROOT, child_env, children, left_behind, run, tail
+from tests.tiny import ARCHITECTURE, csg2d_inputs
 
 pytestmark = pytest.mark.integration
 
 WORKER = REPO_ROOT / "tests" / "distributed_worker.py"
-MODEL = {"d_model": 16, "n_layers": 1, "n_heads": 2, "dim_ff": 32, "dropout": 0.1, "enc_channels": [4, 4, 8, 8]}
+MODEL = {**ARCHITECTURE, "dropout": 0.1, "enc_channels": list(ARCHITECTURE["enc_channels"])}
 
 
 def launch(tmp, name: str, commands: list[list[str]]) -> list[list[dict]]:
@@ -100,52 +101,32 @@ def test_two_process_pretraining_keeps_ranks_equal_writes_once_and_resumes(tmp_p
     assert left_behind(before) == []
 
 
-FINETUNE = """
-finetune:
-  csg2d:
-    domain: csg2d
-    checkpoint: {ckpt}
-    prepared_dir: {prepared}
-    out_dir: {out}
-    summary_dir: {out}/summaries
-    device: cpu
-    threads: 1
-    train_limit: 30
-    val_limit: 6
-    methods:
-      lest_st_ws: {{method: lest+st+ws}}
-      rl: {{method: rl}}
-    plad:
-      infer_beam: 2
-      infer_batch: 8
-      val_beam_epoch: 1
-      val_beam_round: 2
-      max_rounds: 1
-      train: {{batch_size: 8, steps_per_epoch: 3, max_epochs: 2, patience: 3}}
-      ws: {{latent: 4, hidden: 8, batch_size: 8, max_epochs: 2, steps_per_epoch: 2, sample_batch: 32}}
-    rl: {{batch_size: 6, steps_per_epoch: 3, max_epochs: 2, val_beam: 2}}
-"""
+def finetune_params(path, root, out) -> None:
+    """Tiny fine-tuning of ``root``'s model on 30 real shapes: lest+st+ws (one round) and rl."""
+    section = {"domain": "csg2d", "checkpoint": str(root / "sp.pt"), "prepared_dir": str(root / "prepared"),
+               "out_dir": str(out), "summary_dir": str(out / "summaries"), "device": "cpu", "threads": 1,
+               "train_limit": 30, "val_limit": 6,
+               "methods": {"lest_st_ws": {"method": "lest+st+ws"}, "rl": {"method": "rl"}},
+               "plad": {"infer_beam": 2, "infer_batch": 8, "val_beam_epoch": 1, "val_beam_round": 2, "max_rounds": 1,
+                        "train": {"batch_size": 8, "steps_per_epoch": 3, "max_epochs": 2, "patience": 3},
+                        "ws": {"latent": 4, "hidden": 8, "batch_size": 8, "max_epochs": 2, "steps_per_epoch": 2,
+                               "sample_batch": 32}},
+               "rl": {"batch_size": 6, "steps_per_epoch": 3, "max_epochs": 2, "val_beam": 2}}
+    path.write_text(json.dumps({"finetune": {"csg2d": section}}))
 
 
 def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path, datasets_dir):
-    from plad.checkpoint import load_model, save_checkpoint
+    from plad.checkpoint import load_model
     from plad.data import load_prepared
     from plad.domains import get_domain
-    from plad.model import ModelConfig, PLADNet
     from plad.pbest import PBest
     from plad.search import infer_batched
-    from plad.stages.prepare import PrepareConfig, prepare
 
     before = children()
     domain = get_domain("csg2d")
-    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"], out_dir=str(tmp_path / "prepared")))
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, **{**MODEL, "enc_channels": tuple(MODEL["enc_channels"])}))
-    save_checkpoint(tmp_path / "sp.pt", model, "csg2d", domain.tokens.names)
+    csg2d_inputs(tmp_path, datasets_dir)
     out = tmp_path / "runs"
-    (tmp_path / "params.yaml").write_text(FINETUNE.format(ckpt=tmp_path / "sp.pt", prepared=tmp_path / "prepared",
-                                                          out=out))
+    finetune_params(tmp_path / "params.yaml", tmp_path, out)
     keys = {"lest_st_ws": 2 * 2 + 2 * 3, "rl": 2 * 3}   # optimizer steps: WS 2 epochs of 2, fit 2 of 3; RL 2 of 3
     results = launch(tmp_path, "finetune", [["finetune", "--params", "params.yaml", "--section", "finetune.csg2d",
                                              "--set", f"key={key}"] for key in keys])

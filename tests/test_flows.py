@@ -4,6 +4,8 @@ import json
 import numpy as np
 import pytest
 
+from tests.tiny import csg2d_inputs
+
 
 @pytest.fixture(scope="module")
 def prefect_harness(tmp_path_factory):
@@ -75,21 +77,7 @@ flows:
 
 @pytest.fixture(scope="module")
 def smoke_params(tmp_path_factory, datasets_dir):
-    import torch
-
-    from plad.checkpoint import save_checkpoint
-    from plad.domains import get_domain
-    from plad.model import ModelConfig, PLADNet
-    from plad.stages.prepare import PrepareConfig, prepare
-
-    root = tmp_path_factory.mktemp("flow")
-    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"], out_dir=str(root / "prepared")))
-    domain = get_domain("csg2d")
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
-                                enc_channels=(4, 4, 8, 8)))
-    save_checkpoint(root / "sp.pt", model, "csg2d", domain.tokens.names)
+    root = csg2d_inputs(tmp_path_factory.mktemp("flow"), datasets_dir)
     params = root / "params.yaml"
     params.write_text(SMOKE_PARAMS.format(ckpt=root / "sp.pt", prepared=root / "prepared",
                                           flows_out=root / "flows"))

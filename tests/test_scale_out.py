@@ -8,6 +8,8 @@ worker), so the module starts ``prefect server start`` once.
 """
 from __future__ import annotations
 
+import os
+import signal
 import sqlite3
 import sys
 import time
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 
 from tests.procs import child_env, children, free_port, group, left_behind, start, stop, tail, wait_http
+from tests.tiny import csg2d_inputs
 
 pytestmark = pytest.mark.integration
 
@@ -61,23 +64,8 @@ flows:
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory, datasets_dir) -> Path:
-    """Prepared 2D shapes and a tiny pretrained-looking model (random weights)."""
-    import torch
-
-    from plad.checkpoint import save_checkpoint
-    from plad.domains import get_domain
-    from plad.model import ModelConfig, PLADNet
-    from plad.stages.prepare import PrepareConfig, prepare
-
-    root = tmp_path_factory.mktemp("scale-out")
-    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"], out_dir=str(root / "prepared")))
-    domain = get_domain("csg2d")
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
-                                enc_channels=(4, 4, 8, 8)))
-    save_checkpoint(root / "sp.pt", model, "csg2d", domain.tokens.names)
-    return root
+    """Prepared 2D shapes and a tiny model with random weights."""
+    return csg2d_inputs(tmp_path_factory.mktemp("scale-out"), datasets_dir)
 
 
 def params(root: Path, out: Path, dask: str | None = None) -> Path:
@@ -170,7 +158,7 @@ def test_round_inference_on_a_dask_cluster_survives_a_killed_worker(prefect_serv
         while not killed and procs["flow"].poll() is None and time.monotonic() < deadline:
             running = client.run(_executing, workers=[victim]).get(victim, [])
             if any("infer_shard" in key for key in running):
-                stop(procs.pop("w1"), grace=0)
+                os.killpg(procs["w1"].pid, signal.SIGKILL)   # a crash: no goodbye to the scheduler
                 killed = running
             time.sleep(0.05)
         assert killed, f"w1 never ran a shard:\n{tail(flow_log)}"
