@@ -7,13 +7,13 @@ The flow calls the same functions as the DVC stages (``plad.stages.finetune``,
 ``plad.stages.evaluate``, ``plad.stages.report``); it only decides how the
 steps run. Each step of a round (inference, wake-sleep generator, training,
 validation) is a task; inference over the training shapes is split into
-``flows.shards`` tasks, with retries, that run in parallel on the flow's task
-runner: threads by default, a Dask cluster when ``flows.dask_address`` is set
-(through prefect-dask). Every flow run starts from the project's prepared
-data and pretrained model and writes under ``runs/flows/<run name>/``, in
-the project's layout (:meth:`plad.layout.Layout.flow_run`), so that
-scheduled retrainings never overwrite each other; a run started again with
-the same name resumes.
+``flows.shards`` tasks, with retries, that run in parallel: on the flow's
+threads by default, on a Dask cluster when ``flows.dask_address`` is set
+(through prefect-dask; chosen when the flow runs, so deployments honour it
+too). Every flow run starts from the project's prepared data and pretrained
+model and writes under ``runs/flows/<run name>/``, in the project's layout
+(:meth:`plad.layout.Layout.flow_run`), so that scheduled retrainings never
+overwrite each other; a run started again with the same name resumes.
 """
 from __future__ import annotations
 
@@ -71,9 +71,16 @@ def sharded_infer(domain_name: str, beam: int, batch: int, cfg: FlowsConfig):
 
     def infer(model, shapes: np.ndarray):
         parts = [p for p in np.array_split(np.arange(len(shapes)), max(1, cfg.shards)) if len(p)]
-        futures = [shard_task.submit(model, domain_name, shapes[p], beam, batch, cfg.threads_per_task)
-                   for p in parts]
-        results = [f.result() for f in futures]
+        calls = [{"model": model, "domain_name": domain_name, "shapes": shapes[p], "beam": beam, "batch": batch,
+                  "threads": cfg.threads_per_task} for p in parts]
+        if cfg.dask_address:
+            # a worker lost mid-shard: Dask runs the shard again on another worker
+            from prefect_dask import DaskTaskRunner
+
+            with DaskTaskRunner(address=cfg.dask_address) as runner:
+                results = [f.result() for f in [runner.submit(shard_task, c) for c in calls]]
+        else:
+            results = [f.result() for f in [shard_task.submit(**c) for c in calls]]
         values = np.concatenate([r[0] for r in results])
         programs = [p for r in results for p in r[1]]
         executions = np.concatenate([r[2] for r in results])
@@ -104,18 +111,19 @@ def run_configs(params: dict, source: str):
 
 @flow(name="plad-finetune")
 def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = None,
-                  run_name: str | None = None, root: str = ".") -> dict:
+                  run_name: str | None = None, root: str = ".", profile: str | None = None) -> dict:
     """Fine-tune the configured methods, evaluate them on the test split, and write the report.
 
     ``root`` is the project's layout root (:mod:`plad.layout`): the run starts from its prepared data
-    and pretrained model and writes under its ``runs/flows/<run_name>/``.
+    and pretrained model and writes under its ``runs/flows/<run_name>/``. ``profile`` (smoke, cpu,
+    paper) replaces the params file's ``profile``: ``profiles/<profile>.yaml`` is applied on top.
     """
     from plad.stages.evaluate import tracked_evaluate
     from plad.stages.finetune import tracked_finetune
     from plad.stages.report import report
 
     run_name = run_name or dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    params = load_params(params_path)
+    params = load_params(params_path, profile=profile)
     fcfg, ft, ev, rp = run_configs(params, params_path)
     ctx = StageContext(Layout(root).flow_run(run_name), Path(params_path))
     keys = list(methods or fcfg.methods or ft.methods)
@@ -139,22 +147,11 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
     return out
 
 
-def with_runner(params_path: str):
-    """The flow with the task runner chosen by ``flows.dask_address``."""
-    params = load_params(params_path)
-    fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
-    if fcfg.dask_address:
-        from prefect_dask import DaskTaskRunner
-
-        return finetune_flow.with_options(task_runner=DaskTaskRunner(address=fcfg.dask_address))
-    return finetune_flow
-
-
 def deployment(params_path: str, root: str = "."):
     """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
     params = load_params(params_path)
     fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
-    return with_runner(params_path).to_deployment(
+    return finetune_flow.to_deployment(
         name=fcfg.deployment, cron=fcfg.cron,
         parameters={"params_path": str(Path(params_path).resolve()), "root": str(Path(root).resolve())})
 
@@ -174,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
 
         serve(deployment(args.params, args.root))
     else:
-        print(with_runner(args.params)(args.params, args.methods, args.run_name, args.root))
+        print(finetune_flow(args.params, args.methods, args.run_name, args.root))
 
 
 if __name__ == "__main__":

@@ -154,12 +154,17 @@ def _read_profile(path: Path, data: dict[str, Any]) -> tuple[Path | None, dict[s
     return ppath, over
 
 
-def load_params(path: str | os.PathLike = "params.yaml") -> Params:
-    """The params file with its profile applied: every section resolved (see the module docstring)."""
+def load_params(path: str | os.PathLike = "params.yaml", profile: str | None = None) -> Params:
+    """The params file with its profile applied: every section resolved (see the module docstring).
+
+    ``profile`` replaces the file's own ``profile`` key (as ``dvc exp run -S profile=...`` would).
+    """
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"{path}: no such params file")
     data = _read_yaml(path)
+    if profile is not None:
+        data["profile"] = profile
     unknown = sorted(set(data) - SECTIONS)
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {', '.join(unknown)}; allowed: {', '.join(sorted(SECTIONS))}")

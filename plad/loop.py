@@ -26,6 +26,13 @@ does. What they share lives here, once:
 
 Callers keep the best weights through ``keep_best`` and get them back through
 ``restore_best``; the loop decides when.
+
+In a distributed run (:mod:`plad.distributed`) every rank runs the loop; the
+decisions are rank 0's (its limits, and each unit's value and time, are
+broadcast), and only rank 0 commits the store and hears ``on_unit``.
+``keep_best`` and ``restore_best`` run on every rank: ``keep_best`` writes
+files only on rank 0, and ``restore_best`` runs once every rank is past the
+last ``keep_best``.
 """
 from __future__ import annotations
 
@@ -42,6 +49,7 @@ from typing import Any, Protocol
 
 from tqdm import tqdm
 
+from plad import distributed as dist
 from plad.fsutil import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -236,7 +244,8 @@ class Loop:
         ``keep_best(unit, value)`` saves a new best; ``restore_best()`` loads it
         back at the end. ``on_unit(unit, row)`` follows each unit's commit.
         """
-        saved = self.store.load() if self.store else None
+        saved = dist.main_first(self.store.load) if self.store else None
+        self.limits = dist.broadcast(self.limits)   # budgets computed from each rank's clock: rank 0's rule
         if saved is not None:
             s = LoopState.from_dict(saved, self.unit_name)
             log.info("resuming after %s %d (best %.6g at %s %d)", self.unit_name, s.unit, s.best,
@@ -244,15 +253,15 @@ class Loop:
         else:
             s = LoopState(self.unit_name, best=worst(self.objective))
             if start is not None:
-                value = start()
+                value = dist.broadcast(start())
                 s.best = value
                 s.history.append({"unit": 0, "val": value, "unit_seconds": 0.0, "seconds": 0.0})
                 if keep_best:
                     keep_best(0, value)
-                if self.store:
+                if self.store and dist.is_main():
                     self.store.commit(s.to_dict())
         bar = tqdm(total=self.limits.max_units, initial=s.unit, desc=progress, unit=self.unit_name,
-                   disable=None if progress else True)
+                   disable=None if progress and dist.is_main() else True)
         while (stopped := self._stop(s)) is None:
             unit = s.unit + 1
             t0 = time.monotonic()
@@ -263,6 +272,7 @@ class Loop:
 
             result = step(unit, remaining)
             dt = time.monotonic() - t0
+            result, dt = dist.broadcast((result, dt))
             s.unit, s.seconds = unit, s.seconds + dt
             if gain(self.objective, result.value, s.best) > self.limits.min_delta:
                 s.best, s.best_unit, s.since_best = result.value, unit, 0
@@ -272,14 +282,15 @@ class Loop:
                 s.since_best += result.patience
             row = {"unit": unit, "val": result.value, **result.row, "unit_seconds": dt, "seconds": s.seconds}
             s.history.append(row)
-            if self.store:
+            if self.store and dist.is_main():
                 self.store.commit(s.to_dict())   # the unit is finished once this is on disk
             bar.update(1)
             bar.set_postfix(val=f"{result.value:.4g}", best=f"{s.best:.4g}")
-            if on_unit:
+            if on_unit and dist.is_main():
                 on_unit(unit, row)
         bar.close()
         if restore_best:
+            dist.barrier()   # rank 0 has written the last best
             restore_best()
         return LoopResult(self.unit_name, s.unit, s.best_unit, s.best, stopped, s.seconds, s.history)
 

@@ -7,6 +7,11 @@ exponential moving average of the batch mean reward as the baseline, and SGD
 with momentum. Rewards: a similarity in [0, 1] (IoU) is the reward itself; a
 distance (the 2D Chamfer distance) becomes CSGNet's
 ``clip(1 - d / diagonal, 0, 1) ** 20`` with the canvas diagonal (64 * sqrt 2).
+
+Under torchrun (:mod:`plad.distributed`) each rank samples programs for its
+own batches of shapes, the baseline follows the mean reward over all ranks
+and the gradients are averaged (DDP), so the ranks keep equal weights,
+optimizer and baseline; rank 0 writes the files.
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
 from plad.job import Job
@@ -91,6 +97,7 @@ class Reinforce:
         self.baseline: float | None = None
         self.batches = 0
         self.generator = torch.Generator(device=next(model.parameters()).device).manual_seed(seed)
+        self.log_probs = dist.data_parallel(model, lambda m, *a: masked_log_probs(m, domain, *a))
 
     def step(self, shapes: torch.Tensor) -> dict[str, float]:
         model, domain = self.model, self.domain
@@ -99,11 +106,11 @@ class Reinforce:
         with torch.no_grad():
             values = domain.metric(domain.execute(tokens), shapes)
             r = reward(domain, values).float()
-        mean_r = float(r.mean())
+        mean_r = dist.mean(float(r.mean()))   # one baseline for every rank
         self.baseline = mean_r if self.baseline is None else (
             self.cfg.baseline_alpha * self.baseline + (1 - self.cfg.baseline_alpha) * mean_r)
         model.train()
-        logp = masked_log_probs(model, domain, shapes, tokens, lengths)
+        logp = self.log_probs(shapes, tokens, lengths)
         loss = -((r - self.baseline) * logp / lengths.float()).mean() / self.cfg.accumulate
         loss.backward()
         self.batches += 1
@@ -125,7 +132,7 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
     sampling generator) is saved atomically after every epoch, so a killed run
     resumes where it was; ``state.json`` holds the history like PLAD's rounds.
     """
-    from plad.search import infer_batched
+    from plad.rounds import mean_metric
 
     model, domain, out, seed = job.model, job.domain, job.out_dir, job.seed
     out.mkdir(parents=True, exist_ok=True)
@@ -135,7 +142,7 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
     learner_file = out / "learner.pt"
 
     def validate() -> float:
-        return float(infer_batched(model, domain, job.val, cfg.val_beam, cfg.val_batch, desc="validate")[0].mean())
+        return mean_metric(model, domain, job.val, cfg.val_beam, cfg.val_batch)
 
     def save(unit: int, folder: Path) -> None:   # staged, then moved to out/ by the store's commit
         save_checkpoint(folder / learner_file.name, model, domain.name, names, {
@@ -150,14 +157,17 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
         learner.baseline, learner.batches = payload["baseline"], payload["batches"]
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
+        if dist.is_main():
+            save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
     def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
-        rng = np.random.default_rng([seed, unit])
-        torch.manual_seed(seed * 1_000_003 + unit)   # dropout masks: a resumed epoch draws the same
+        rng = np.random.default_rng([dist.rank_seed(seed), unit])   # this rank's batches
+        torch.manual_seed(dist.rank_seed(seed * 1_000_003 + unit))   # dropout masks: a resumed epoch draws the same
+        if dist.world() > 1:   # only rank 0's sampling state is saved: the others restart theirs every epoch
+            learner.generator.manual_seed(dist.rank_seed(seed * 1_000_003 + unit + 2**62))
         totals: dict[str, float] = {}
         for _ in range(cfg.steps_per_epoch):
             idx = np.sort(rng.choice(len(job.train), size=cfg.batch_size, replace=cfg.batch_size > len(job.train)))

@@ -24,6 +24,12 @@ Everything needed to resume is on disk after each round (``state.json``,
 ``last.pt``): a killed run continues at the last finished round with the
 same P_BEST. The loop over rounds (patience, budget, selection, history) is
 :class:`plad.loop.Loop`, as for every other trainer.
+
+Under torchrun (:mod:`plad.distributed`) the ranks split the beam inference
+over the training and validation shapes and gather the results, so every
+rank holds the same P_BEST; training is data-parallel (:func:`plad.train.fit`,
+:func:`plad.ws.train_generator`), each rank drawing its own batches from the
+sources; rank 0 alone writes files and samples the wake-sleep programs.
 """
 from __future__ import annotations
 
@@ -39,6 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.domains.base import Domain
 from plad.fsutil import atomic_write
@@ -83,7 +90,29 @@ def _direct(name: str, fn, *args, **kwargs):
 
 
 def mean_metric(model: PLADNet, domain: Domain, shapes: np.ndarray, beam: int, batch: int) -> float:
-    return float(infer_batched(model, domain, shapes, beam, batch, desc="validate")[0].mean())
+    """Mean best-of-beam metric over ``shapes`` (the shapes split across the ranks of a distributed run)."""
+    parts = dist.map_split(lambda idx: infer_batched(model, domain, shapes[idx], beam, batch, desc="validate")[0],
+                           len(shapes))
+    return float(np.concatenate(parts).mean())
+
+
+def split_across_ranks(infer: Infer, shape: tuple[int, ...]) -> Infer:
+    """``infer`` with the shapes split across the ranks of a distributed run and the results gathered on every
+    rank (``infer`` itself in one process). Executions travel bit-packed."""
+    if dist.world() == 1:
+        return infer
+    size = int(np.prod(shape))
+
+    def part(model: PLADNet, shapes: np.ndarray):
+        values, programs, executions = infer(model, shapes)
+        return values, programs, np.packbits(executions.reshape(len(shapes), size), axis=1)
+
+    def split(model: PLADNet, shapes: np.ndarray):
+        parts = dist.map_split(lambda idx: part(model, shapes[idx]), len(shapes))
+        executions = np.concatenate([np.unpackbits(p[2], axis=1, count=size) for p in parts]).astype(bool)
+        return (np.concatenate([p[0] for p in parts]), [z for p in parts for z in p[1]],
+                executions.reshape(-1, *shape))
+    return split
 
 
 def infer_into_pbest(model: PLADNet, shapes: np.ndarray, pbest: PBest, infer: Infer) -> dict[str, float]:
@@ -99,13 +128,19 @@ def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConf
     """This round's wake-sleep data: fine-tune the persistent generator on P_BEST, sample ``n`` programs."""
     device = next(model.parameters()).device
     samples = out / f"ws_round_{rnd:03d}.npz"
-    if samples.exists():  # a resumed round: the same samples as before the kill
-        with np.load(samples) as z:
+
+    def read(source) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+        with np.load(source) as z:
             return z["programs"], np.unpackbits(z["executions"], axis=1, count=int(np.prod(domain.shape))) \
                 .astype(bool).reshape(-1, *domain.shape), json.loads(str(z["stats"]))
+
+    if dist.broadcast(samples.exists()):  # a resumed round: the same samples as before the kill
+        return read(samples)
     gen_file = out / "ws_generator.pt"
-    gen = load_generator(gen_file, device)[0] if gen_file.exists() else new_generator(model, cfg)
+    gen = load_generator(gen_file, device)[0] if dist.broadcast(gen_file.exists()) else new_generator(model, cfg)
     stats = train_generator(gen, pbest, cfg, seed=seed, max_seconds=max_seconds)
+    if not dist.is_main():   # rank 0 samples; the others get the very file it wrote
+        return read(io.BytesIO(dist.broadcast(None)))
     save_generator(gen_file, gen, cfg, rnd)
     programs, executions, sample_stats = sample_dataset(gen, domain, n, cfg, seed=seed)
     stats.update(sample_stats)
@@ -113,6 +148,7 @@ def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConf
     np.savez_compressed(buf, programs=programs, stats=np.asarray(json.dumps(stats)),
                         executions=np.packbits(executions.reshape(len(executions), -1), axis=1))
     atomic_write(samples, lambda fh: fh.write(buf.getvalue()))
+    dist.broadcast(buf.getvalue())
     return programs, executions, stats
 
 
@@ -145,6 +181,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
     if infer is None:
         def infer(m: PLADNet, shapes: np.ndarray):
             return infer_batched(m, domain, shapes, cfg.infer_beam, cfg.infer_batch, desc="infer")
+        infer = split_across_ranks(infer, tuple(domain.shape))
     out.mkdir(parents=True, exist_ok=True)
     metric = domain.metric
     device = next(model.parameters()).device
@@ -164,7 +201,8 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         return mean_metric(model, domain, job.val, cfg.val_beam_round, cfg.infer_batch)
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
+        if dist.is_main():
+            save_checkpoint(out / BEST, model, domain.name, names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
@@ -176,9 +214,10 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         nonlocal pbest
         torch.manual_seed(job.seed * 1_000_003 + rnd)  # a resumed round draws the same dropout masks
         round_dir = out / f"round_{rnd:03d}"
-        if not (round_dir / LAST).exists():  # P_BEST of this round not yet updated (or a fresh round)
+        if not dist.broadcast((round_dir / LAST).exists()):  # P_BEST of this round not yet updated
             stats = run(f"round {rnd}: infer", infer_into_pbest, model, job.train, pbest, infer)
-            pbest.save(out / "pbest_round.npz")
+            if dist.is_main():
+                pbest.save(out / "pbest_round.npz")
         else:
             pbest = PBest.load(out / "pbest_round.npz", metric)
             stats = {"pbest_mean": float(np.nanmean(pbest.values)), "pbest_improved": math.nan}
@@ -190,7 +229,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                 len(job.train), job.seed * 104_729 + rnd, remaining())
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
-        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=job.seed * 7919 + rnd)
+        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd))
         # the round trains within what is left of the run's budget
         result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir,
                      domain=domain.name, token_names=names,

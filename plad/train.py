@@ -7,6 +7,12 @@ schedule steps, the best weights are kept, and ``last.pt`` is written
 atomically with everything needed to continue: killing the process and
 running the same command again resumes after the last finished epoch. The
 loop itself (stopping, budget, best, history) is :class:`plad.loop.Loop`.
+
+Under torchrun (:mod:`plad.distributed`) every rank runs :func:`fit` on its
+own batches with the gradients averaged (DDP); rank 0's validation metrics
+drive the schedule and the loop, and only rank 0 writes ``last.pt`` and
+``best.pt``. Each rank's random stream (dropout) is re-seeded at every
+epoch from (seed, epoch, rank), so a resumed run needs no per-rank state.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.checkpoint import read_checkpoint, save_checkpoint
 from plad.layout import BEST, LAST
 from plad.loop import Limits, Loop, LoopResult, Objective, Unit, upgrade_state
@@ -105,8 +112,10 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
 
     ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
     programs, lengths) on the model's device; derive them from the epoch
-    number so that a resumed run sees the same data. ``validate(model)``
-    returns metrics including ``objective.name``, the value selected on. The
+    number so that a resumed run sees the same data (in a distributed run:
+    this rank's part, see :mod:`plad.distributed`). ``validate(model)``
+    returns metrics including ``objective.name``, the value selected on; it
+    runs on every rank (it may split its work across them). The
     best weights are written to ``out_dir/best.pt`` and loaded back into
     ``model`` at the end. ``budget_seconds`` counts training time across
     resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
@@ -119,15 +128,18 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
         opt, mode="max" if objective.higher_is_better else "min", factor=cfg.lr_factor, patience=cfg.lr_patience,
         threshold=cfg.min_delta, threshold_mode="abs", min_lr=cfg.min_lr)
-    step_loss = loss_fn or (lambda m, b: m.loss(*b))
+    step_loss = dist.data_parallel(model, loss_fn or (lambda m, b: m.loss(*b)))
+    seed = torch.initial_seed()   # the caller's seed, before a resume restores the RNG state
 
     def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
         model.train()
+        if dist.world() > 1:   # this rank's dropout stream, fixed by (seed, epoch, rank): nothing per rank to save
+            torch.manual_seed(dist.rank_seed(seed * 1_000_003 + unit))
         total, total_acc = 0.0, 0.0
         it = batches(unit - 1)   # batch streams are numbered from 0
         for _ in range(cfg.steps_per_epoch):
             batch = next(it)
-            loss, acc = step_loss(model, batch)
+            loss, acc = step_loss(batch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip:
@@ -135,14 +147,17 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
             opt.step()
             total += float(loss.detach())
             total_acc += float(acc)
-        metrics = {"train_loss": total / cfg.steps_per_epoch, "train_acc": total_acc / cfg.steps_per_epoch}
+        metrics = {"train_loss": dist.mean(total / cfg.steps_per_epoch),
+                   "train_acc": dist.mean(total_acc / cfg.steps_per_epoch)}
         metrics.update(validate(model))
+        metrics = dist.broadcast(metrics)   # rank 0's values drive the schedule on every rank
         value = metrics[objective.name]
         sched.step(value)
         return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]})
 
     def keep_best(unit: int, value: float) -> None:
-        save_checkpoint(out / BEST, model, domain, token_names, {"unit": unit, "val": value})
+        if dist.is_main():
+            save_checkpoint(out / BEST, model, domain, token_names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])

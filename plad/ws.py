@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from plad import distributed as dist
 from plad.domains.base import Domain, split_padding
 from plad.fsutil import atomic_write
 from plad.loop import Limits, Loop, Objective, Unit
@@ -125,13 +126,16 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
 
     Not resumable by itself: a round saves the generator once it is trained,
     and a round killed before that trains it again from the same start.
+    Under torchrun each rank trains on its own batches of P_BEST (every rank
+    holds the same P_BEST) with the gradients averaged (DDP).
     """
     device = next(gen.parameters()).device
     idx_all = np.nonzero(pbest.has)[0]
     if len(idx_all) == 0:
         raise ValueError("P_BEST is empty: nothing to train the wake-sleep generator on")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(dist.rank_seed(seed))
     opt = torch.optim.Adam(gen.parameters(), lr=cfg.lr)
+    loss_of = dist.data_parallel(gen, lambda g, *a: g.loss(*a))
     steps = cfg.steps_per_epoch or max(1, math.ceil(len(idx_all) / cfg.batch_size))
     best: dict[str, dict[str, torch.Tensor]] = {}
     gen.train()
@@ -143,13 +147,13 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
             idx = np.sort(order[s * cfg.batch_size:(s + 1) * cfg.batch_size])
             programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)).to(device))
             shapes = torch.from_numpy(pbest.executions[idx]).to(device)
-            loss, _ = gen.loss(shapes, programs, lengths, cfg.kl_weight)
+            loss, _ = loss_of(shapes, programs, lengths, cfg.kl_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(gen.parameters(), 1.0)
             opt.step()
             total += float(loss.detach())
-        return Unit(total / steps)
+        return Unit(dist.mean(total / steps))
 
     def keep_best(unit: int, value: float) -> None:   # in memory: see the docstring
         best["state"] = {k: v.detach().clone() for k, v in gen.state_dict().items()}

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from plad.layout import Layout
+from tests.tiny import csg2d_inputs
 
 
 @pytest.fixture(scope="module")
@@ -68,22 +69,7 @@ flows:
 
 @pytest.fixture(scope="module")
 def smoke_params(tmp_path_factory, datasets_dir):
-    import torch
-
-    from plad.checkpoint import save_checkpoint
-    from plad.domains import get_domain
-    from plad.model import ModelConfig, PLADNet
-    from plad.stages.prepare import PrepareConfig, prepare
-
-    root = tmp_path_factory.mktemp("flow")   # the layout root of a project with a pretrained model
-    layout = Layout(root)
-    prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"]), layout)
-    domain = get_domain("csg2d")
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
-                                enc_channels=(4, 4, 8, 8)))
-    save_checkpoint(layout.model("csg2d"), model, "csg2d", domain.tokens.names)
+    root = csg2d_inputs(tmp_path_factory.mktemp("flow"), datasets_dir)
     params = root / "params.yaml"
     params.write_text(SMOKE_PARAMS)
     return params

@@ -11,7 +11,9 @@ wall-clock seconds), ``summary.json`` (also copied to
 ``results/finetune/<domain>/<key>.json``), and the method's resumable state
 (P_BEST, generator, ...).
 A killed run, started again, resumes at its last finished round. The PLAD
-rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`.
+rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`. Data-parallel
+on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
+(:mod:`plad.distributed`); rank 0 writes the outputs and the MLflow run.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, STATE, SUMMARY, Layout
 from plad.methods import MethodConfig
@@ -100,6 +103,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     hooks = hooks or RoundHooks()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    dist.init()   # under torchrun: join the other ranks (before the model goes to this rank's GPU)
     device = resolve_device(cfg.device)
     model, name = load_model(layout.model(cfg.domain), device, expect_domain=cfg.domain)
     domain = get_domain(name)
@@ -113,10 +117,10 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
         summary = run_rounds(job, spec, cfg.plad, hooks)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
-    text = json.dumps(summary, indent=2) + "\n"
-    out = job.out_dir
-    atomic_write_text(out / SUMMARY, text)
-    atomic_write_text(layout.finetune_summary(cfg.domain, str(cfg.key)), text)
+    if dist.is_main():
+        text = json.dumps(summary, indent=2) + "\n"
+        atomic_write_text(job.out_dir / SUMMARY, text)
+        atomic_write_text(layout.finetune_summary(cfg.domain, str(cfg.key)), text)
     return summary
 
 
@@ -128,6 +132,8 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
 
     method_of(cfg)
     read_checkpoint(ctx.layout.model(cfg.domain))  # fail on a bad checkpoint before any MLflow run starts
+    if not dist.is_main():   # one MLflow run per method, rank 0's
+        return finetune_stage(cfg, ctx.layout, RoundHooks(infer=infer, step=step))
     out = ctx.layout.finetune_dir(cfg.domain, str(cfg.key))
     params = asdict(cfg)
     params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only

@@ -8,6 +8,10 @@ metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 Outputs in ``runs/pretrain/<domain>/`` (:mod:`plad.layout`): ``best.pt``
 (the model), ``last.pt`` (resume state), ``history.csv`` (per-epoch
 metrics), ``summary.json``.
+
+Data-parallel on N processes with ``torchrun --nproc-per-node N -m
+plad.stages.pretrain ...`` (:mod:`plad.distributed`): the ranks deal out the
+batches of each epoch's permutation in turn, and rank 0 writes the outputs.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from plad import distributed as dist
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
 from plad.device import resolve_device
@@ -69,6 +74,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     from plad.search import greedy_decode
 
     domain = get_domain(cfg.domain)
+    dist.init()   # under torchrun: join the other ranks (before the model goes to this rank's GPU)
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -82,11 +88,11 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     bs = cfg.train.batch_size
 
     def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
-        # a stream fixed by (seed, epoch): a resumed run trains on the same batches
+        # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         while True:
             perm = torch.randperm(len(train), generator=gen)
-            for start in range(0, len(perm) - bs + 1, bs):
+            for start in dist.chunk_starts(len(perm), bs):
                 yield make_batch(domain, train[perm[start:start + bs]], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
@@ -125,7 +131,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
     last = out / LAST
-    if not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint:
+    if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
@@ -135,7 +141,8 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
                **{k: round(v, 6) for k, v in final.items()}}
-    atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
+    if dist.is_main():
+        atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
     return summary
 
 
@@ -144,6 +151,8 @@ def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) ->
     from plad.tracking import StageRun
 
     load_programs(ctx.layout.synthetic(cfg.domain))  # fail before any MLflow run starts
+    if not dist.is_main():   # one MLflow run per training, rank 0's
+        return pretrain(cfg, ctx.layout)
     out = ctx.layout.pretrain_dir(cfg.domain)
     with StageRun("pretrain", cfg.domain, asdict(cfg), out, params_path=ctx.params) as run:
         summary = pretrain(cfg, ctx.layout, on_epoch=lambda e, m: run.log_metrics(m, step=e))
