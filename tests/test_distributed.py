@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from plad.layout import BEST, HISTORY, LAST, STATE, SUMMARY, Layout
 from tests.procs import REPO_ROOT, child_env, children, left_behind, run, tail
 from tests.tiny import ARCHITECTURE, csg2d_inputs
 
@@ -50,19 +51,19 @@ def mlflow_runs(db) -> list[str]:
 
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
+    """The layout folder of a few synthetic 2D programs (``data/synthetic`` of a layout root)."""
     from plad.stages.synthesize import SynthesizeConfig, synthesize
 
-    out = tmp_path_factory.mktemp("synthetic")
-    synthesize(SynthesizeConfig(domain="csg2d", train_programs=600, val_programs=32, seed=0, out_dir=str(out)))
-    return out
+    root = tmp_path_factory.mktemp("synthetic")
+    synthesize(SynthesizeConfig(domain="csg2d", train_programs=600, val_programs=32, seed=0), Layout(root))
+    return Layout(root).synthetic_dir
 
 
-def pretrain_params(path, synthetic, out) -> None:
-    section = {"domain": "csg2d", "synthetic_dir": str(synthetic), "out_dir": str(out), "device": "cpu",
-               "threads": 1, "seed": 0, "val_metric_shapes": 8, "max_minutes": None, "model": MODEL,
-               "train": {"batch_size": 8, "lr": 0.001, "steps_per_epoch": 4, "max_epochs": 2, "patience": 5,
-                         "min_delta": 0.001, "lr_patience": 0, "lr_factor": 0.5, "grad_clip": 1.0}}
-    path.write_text(json.dumps({"pretrain": {"csg2d": section}}))
+def pretrain_params(path) -> None:
+    block = {"device": "cpu", "threads": 1, "seed": 0, "val_metric_shapes": 8, "max_minutes": None, "model": MODEL,
+             "train": {"batch_size": 8, "lr": 0.001, "steps_per_epoch": 4, "max_epochs": 2, "patience": 5,
+                       "min_delta": 0.001, "lr_patience": 0, "lr_factor": 0.5, "grad_clip": 1.0}}
+    path.write_text(json.dumps({"pretrain": {"base": block, "csg2d": {}}}))
 
 
 def state(path) -> dict[str, torch.Tensor]:
@@ -71,48 +72,50 @@ def state(path) -> dict[str, torch.Tensor]:
 
 def test_two_process_pretraining_keeps_ranks_equal_writes_once_and_resumes(tmp_path, synthetic):
     before = children()
-    pretrain_params(tmp_path / "straight.yaml", synthetic, tmp_path / "straight")
-    pretrain_params(tmp_path / "resumed.yaml", synthetic, tmp_path / "resumed")
+    pretrain_params(tmp_path / "params.yaml")
+    straight, resumed = Layout(tmp_path / "straight"), Layout(tmp_path / "resumed")
+    for layout in (straight, resumed):   # both runs train on the same synthetic programs
+        layout.synthetic_dir.parent.mkdir(parents=True)
+        layout.synthetic_dir.symlink_to(synthetic)
 
-    def stage(params: str, *sets: str) -> list[str]:
-        return ["pretrain", "--params", params, "--section", "pretrain.csg2d", *[f"--set {s}" for s in sets]]
+    def stage(root: str, *sets: str) -> list[str]:
+        return ["pretrain", "--params", "params.yaml", "--section", "pretrain.csg2d", "--root", root,
+                *[f"--set {s}" for s in sets]]
 
     # launch 1: an uninterrupted run of 2 epochs; the same run stopped after epoch 1 (as a kill after the
     # epoch's commit). Launch 2: the stopped run started again.
-    (r0, r1), first = launch(tmp_path, "first", [stage("straight.yaml"), stage("resumed.yaml", "train.max_epochs=1")])
-    [second] = launch(tmp_path, "second", [stage("resumed.yaml")])
+    (r0, r1), first = launch(tmp_path, "first", [stage("straight"), stage("resumed", "train.max_epochs=1")])
+    [second] = launch(tmp_path, "second", [stage("resumed")])
     assert len(r0["steps"]) == 2 * 4 and r0["steps"] == r1["steps"]   # equal weights after every step
     assert len(set(r0["steps"])) == len(r0["steps"])                   # and they did change
-    out = tmp_path / "straight" / "csg2d"
-    assert {"best.pt", "last.pt", "history.csv", "summary.json"} <= {p.split("/")[-1] for p in written(r0, out)}
+    out = straight.pretrain_dir("csg2d")
+    assert {BEST, LAST, HISTORY, SUMMARY} <= {p.split("/")[-1] for p in written(r0, out)}
     for record in (r1, first[1], second[1]):                            # rank 1 wrote nothing, not even to MLflow
         assert record["writes"] == [] and record["sqlite"] == []
-    assert json.loads((out / "summary.json").read_text())["units"] == 2
-    assert len((out / "history.csv").read_text().splitlines()) == 1 + 2
+    assert json.loads((out / SUMMARY).read_text())["units"] == 2
+    assert len((out / HISTORY).read_text().splitlines()) == 1 + 2
     # resumed: the steps of the uninterrupted run, on both ranks, and the same weights
     for rank in (0, 1):
         assert first[rank]["steps"] + second[rank]["steps"] == r0["steps"]
-    a, b = state(out / "last.pt"), state(tmp_path / "resumed" / "csg2d" / "last.pt")
+    a, b = state(out / LAST), state(resumed.pretrain_dir("csg2d") / LAST)
     assert all(torch.equal(a[k], b[k]) for k in a)
-    assert (tmp_path / "straight" / "csg2d" / "history.csv").read_text().splitlines()[0] == \
-        (tmp_path / "resumed" / "csg2d" / "history.csv").read_text().splitlines()[0]
+    assert (out / HISTORY).read_text().splitlines()[0] == \
+        (resumed.pretrain_dir("csg2d") / HISTORY).read_text().splitlines()[0]
     # one MLflow run per stage command, all rank 0's (the stopped run had finished: its restart is a new run)
     assert mlflow_runs(tmp_path / "mlflow.db") == ["pretrain/csg2d"] * 3
     assert left_behind(before) == []
 
 
-def finetune_params(path, root, out) -> None:
-    """Tiny fine-tuning of ``root``'s model on 30 real shapes: lest+st+ws (one round) and rl."""
-    section = {"domain": "csg2d", "checkpoint": str(root / "sp.pt"), "prepared_dir": str(root / "prepared"),
-               "out_dir": str(out), "summary_dir": str(out / "summaries"), "device": "cpu", "threads": 1,
-               "train_limit": 30, "val_limit": 6,
-               "methods": {"lest_st_ws": {"method": "lest+st+ws"}, "rl": {"method": "rl"}},
-               "plad": {"infer_beam": 2, "infer_batch": 8, "val_beam_epoch": 1, "val_beam_round": 2, "max_rounds": 1,
-                        "train": {"batch_size": 8, "steps_per_epoch": 3, "max_epochs": 2, "patience": 3},
-                        "ws": {"latent": 4, "hidden": 8, "batch_size": 8, "max_epochs": 2, "steps_per_epoch": 2,
-                               "sample_batch": 32}},
-               "rl": {"batch_size": 6, "steps_per_epoch": 3, "max_epochs": 2, "val_beam": 2}}
-    path.write_text(json.dumps({"finetune": {"csg2d": section}}))
+def finetune_params(path) -> None:
+    """Tiny fine-tuning of the layout's model on 30 real shapes: lest+st+ws (one round) and rl."""
+    block = {"device": "cpu", "threads": 1, "train_limit": 30, "val_limit": 6,
+             "methods": {"lest_st_ws": {"method": "lest+st+ws"}, "rl": {"method": "rl"}},
+             "plad": {"infer_beam": 2, "infer_batch": 8, "val_beam_epoch": 1, "val_beam_round": 2, "max_rounds": 1,
+                      "train": {"batch_size": 8, "steps_per_epoch": 3, "max_epochs": 2, "patience": 3},
+                      "ws": {"latent": 4, "hidden": 8, "batch_size": 8, "max_epochs": 2, "steps_per_epoch": 2,
+                             "sample_batch": 32}},
+             "rl": {"batch_size": 6, "steps_per_epoch": 3, "max_epochs": 2, "val_beam": 2}}
+    path.write_text(json.dumps({"finetune": {"base": block, "csg2d": {}}}))
 
 
 def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path, datasets_dir):
@@ -124,22 +127,22 @@ def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path,
 
     before = children()
     domain = get_domain("csg2d")
-    csg2d_inputs(tmp_path, datasets_dir)
-    out = tmp_path / "runs"
-    finetune_params(tmp_path / "params.yaml", tmp_path, out)
+    layout = Layout(csg2d_inputs(tmp_path, datasets_dir))
+    finetune_params(tmp_path / "params.yaml")
     keys = {"lest_st_ws": 2 * 2 + 2 * 3, "rl": 2 * 3}   # optimizer steps: WS 2 epochs of 2, fit 2 of 3; RL 2 of 3
     results = launch(tmp_path, "finetune", [["finetune", "--params", "params.yaml", "--section", "finetune.csg2d",
                                              "--set", f"key={key}"] for key in keys])
     for (key, steps), (r0, r1) in zip(keys.items(), results):
         assert len(r0["steps"]) == steps and r0["steps"] == r1["steps"], key
         assert r1["writes"] == [] and r1["sqlite"] == [], key
-        names = {p.split("/")[-1] for p in written(r0, out / "csg2d" / key)}
-        assert {"best.pt", "state.json", "summary.json"} <= names, key
+        names = {p.split("/")[-1] for p in written(r0, layout.finetune_dir("csg2d", key))}
+        assert {BEST, STATE, SUMMARY} <= names, key
+        assert str(layout.finetune_summary("csg2d", key)) in r0["writes"], key
     # the round's beam inference was split across the ranks: P_BEST holds what one process infers
-    sp, _ = load_model(tmp_path / "sp.pt")
-    train = load_prepared(tmp_path / "prepared" / "csg2d.npz", "train")[:30]
+    sp, _ = load_model(layout.model("csg2d"))
+    train = load_prepared(layout.prepared("csg2d"), "train")[:30]
     values, programs, _ = infer_batched(sp, domain, train, 2, 8)
-    pbest = PBest.load(out / "csg2d" / "lest_st_ws" / "pbest.npz", domain.metric)
+    pbest = PBest.load(layout.finetune_dir("csg2d", "lest_st_ws") / "pbest.npz", domain.metric)
     assert [pbest.program(i) for i in range(30)] == programs
     assert np.allclose(pbest.values, values, atol=1e-9)
     parents = [n for n in mlflow_runs(tmp_path / "mlflow.db") if n.startswith("finetune/")]
