@@ -1,7 +1,7 @@
 """Deploy the fine-tuning flow to a Prefect work pool, where workers on the training machines run it.
 
     python -m flows.deploy --pool plad [--name plad-pool] [--params params.yaml] [--profile smoke]
-                           [--methods lest_st st] [--cron "0 3 * * 0"] [--source /path/seen/by/workers]
+                           [--methods lest_st st] [--root DIR] [--cron "0 3 * * 0"] [--source /path/seen/by/workers]
 
 ``flows.finetune --serve`` runs the flow in the serving process; here a Prefect
 server keeps the deployment and hands its runs to a work pool, whose process
@@ -14,11 +14,14 @@ workers start each run in a new process, on whichever machine they run::
 
 The deployment's code is the repository folder ``--source`` (default: this
 checkout) at the same path on the workers: its pull step only sets the working
-directory, so nothing is cloned or downloaded and relative paths in the params
-(``data/``, ``runs/``) resolve in the repository. The deployment's default
+directory, so nothing is cloned or downloaded, and the layout root
+(:mod:`plad.layout`: the prepared data and pretrained model a run starts from,
+its outputs under ``runs/flows/<run name>/``) is the repository unless
+``--root`` names another folder the workers see. The deployment's default
 parameters are ``--params`` (the params file, relative to the repository),
-``--profile`` (applied on top of it, as its ``profile`` key would be) and
-``--methods``; a run may override ``profile``, ``params_path``, ``methods`` and
+``--profile`` (the override file ``profiles/<profile>.yaml`` applied on top of
+it, replacing the file's own ``profile`` key), ``--methods`` and ``--root``; a
+run may override ``params_path``, ``profile``, ``methods``, ``root`` and
 ``run_name``. ``--env KEY=VALUE`` adds environment variables to every run (e.g.
 ``MLFLOW_TRACKING_URI`` of a shared tracking server).
 """
@@ -46,8 +49,8 @@ def ensure_pool(pool: str) -> None:
 
 
 def deploy(pool: str, name: str = "plad-pool", *, profile: str | None = None, params_path: str = "params.yaml",
-           methods: list[str] | None = None, cron: str | None = None, source: str | Path = REPO_ROOT,
-           env: dict[str, str] | None = None) -> UUID:
+           methods: list[str] | None = None, root: str | None = None, cron: str | None = None,
+           source: str | Path = REPO_ROOT, env: dict[str, str] | None = None) -> UUID:
     """Register the deployment ``plad-finetune/<name>`` on work pool ``pool``; its id."""
     from flows.finetune import finetune_flow
 
@@ -57,6 +60,8 @@ def deploy(pool: str, name: str = "plad-pool", *, profile: str | None = None, pa
         parameters["profile"] = profile
     if methods:
         parameters["methods"] = list(methods)
+    if root:
+        parameters["root"] = str(root)
     flow = finetune_flow.from_source(source=str(Path(source).resolve()), entrypoint=ENTRYPOINT)
     return flow.deploy(name=name, work_pool_name=pool, parameters=parameters, cron=cron,
                        job_variables={"env": dict(env)} if env else None, build=False, push=False,
@@ -70,6 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--params", default="params.yaml", help="params file, relative to the repository")
     parser.add_argument("--profile", help="apply profiles/<PROFILE>.yaml on top of the params (smoke, cpu, paper)")
     parser.add_argument("--methods", nargs="*", help="finetune.methods keys (default: flows.methods, else all)")
+    parser.add_argument("--root", help="layout root of the runs, as the workers see it (default: the repository)")
     parser.add_argument("--cron", help="schedule of the runs (default: none; trigger runs by hand)")
     parser.add_argument("--source", default=str(REPO_ROOT), help="the repository folder as the workers see it")
     parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
@@ -80,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--env {bad[0]!r}: expected KEY=VALUE")
     env = dict(e.split("=", 1) for e in args.env)
     deployment_id = deploy(args.pool, args.name, profile=args.profile, params_path=args.params,
-                           methods=args.methods, cron=args.cron, source=args.source, env=env)
+                           methods=args.methods, root=args.root, cron=args.cron, source=args.source, env=env)
     print(f"deployment plad-finetune/{args.name} ({deployment_id}) on work pool {args.pool}")
 
 

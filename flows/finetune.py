@@ -1,6 +1,7 @@
 """Prefect flow: PLAD fine-tuning rounds as tasks, test evaluation and the report.
 
-    python -m flows.finetune --params params.yaml [--methods lest_st st] [--run-name NAME]
+    python -m flows.finetune --params params.yaml [--profile smoke] [--methods lest_st st] [--run-name NAME]
+                             [--root DIR]
     python -m flows.finetune --params params.yaml --serve      # periodic retraining (needs `prefect server start`)
 
 The flow calls the same functions as the DVC stages (``plad.stages.finetune``,
@@ -147,18 +148,21 @@ def finetune_flow(params_path: str = "params.yaml", methods: list[str] | None = 
     return out
 
 
-def deployment(params_path: str, root: str = "."):
+def deployment(params_path: str, root: str = ".", profile: str | None = None):
     """The scheduled deployment of the flow (cron and name from ``flows``), as ``serve`` runs it."""
-    params = load_params(params_path)
+    params = load_params(params_path, profile=profile)
     fcfg = section(params, "flows", FlowsConfig) if "flows" in params else FlowsConfig()
-    return finetune_flow.to_deployment(
-        name=fcfg.deployment, cron=fcfg.cron,
-        parameters={"params_path": str(Path(params_path).resolve()), "root": str(Path(root).resolve())})
+    parameters = {"params_path": str(Path(params_path).resolve()), "root": str(Path(root).resolve())}
+    if profile is not None:
+        parameters["profile"] = profile
+    return finetune_flow.to_deployment(name=fcfg.deployment, cron=fcfg.cron, parameters=parameters)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m flows.finetune", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--profile", help="apply profiles/<PROFILE>.yaml instead of the one the params name "
+                                          "(smoke, cpu, paper)")
     parser.add_argument("--methods", nargs="*", help="finetune.methods keys (default: flows.methods, else all)")
     parser.add_argument("--run-name", help="output folder under runs/flows/ (default: the UTC time)")
     parser.add_argument("--root", default=".",
@@ -169,9 +173,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.serve:
         from prefect import serve
 
-        serve(deployment(args.params, args.root))
+        serve(deployment(args.params, args.root, args.profile))
     else:
-        print(finetune_flow(args.params, args.methods, args.run_name, args.root))
+        print(finetune_flow(args.params, args.methods, args.run_name, args.root, args.profile))
 
 
 if __name__ == "__main__":

@@ -82,6 +82,13 @@ def test_retraining_schedule_is_defined_by_the_params(smoke_params):
     assert dep.name == "plad-retrain-test"
     assert [s.schedule.cron for s in dep.schedules] == ["*/30 * * * *"]
     assert dep.parameters == {"params_path": str(smoke_params.resolve()), "root": str(smoke_params.parent.resolve())}
+    # a profile applies to the deployment itself (its cron here) and is passed on to every run it starts
+    profiles = smoke_params.parent / "profiles"
+    profiles.mkdir(exist_ok=True)
+    (profiles / "hourly.yaml").write_text('flows:\n  cron: "0 * * * *"\n')
+    dep = deployment(str(smoke_params), str(smoke_params.parent), profile="hourly")
+    assert [s.schedule.cron for s in dep.schedules] == ["0 * * * *"]
+    assert dep.parameters["profile"] == "hourly"
 
 
 def test_sharded_inference_equals_one_batch(smoke_params):

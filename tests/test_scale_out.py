@@ -8,6 +8,7 @@ worker), so the module starts ``prefect server start`` once.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from plad.layout import Layout
 from tests.procs import child_env, children, free_port, group, left_behind, start, stop, tail, wait_http
 from tests.tiny import csg2d_inputs
 
@@ -25,14 +27,13 @@ pytestmark = pytest.mark.integration
 
 #: the shapes of one round and its shards: enough work per shard to kill a worker while it runs one
 TRAIN_SHAPES, SHARDS = 120, 4
+#: the training shapes of the work-pool run, set by a profile
+FEWER_SHAPES = 12
 
 PARAMS = """
+domains: [csg2d]
 finetune:
   csg2d:
-    domain: csg2d
-    checkpoint: {root}/sp.pt
-    prepared_dir: {root}/prepared
-    out_dir: unused
     device: cpu
     threads: 1
     train_limit: {train}
@@ -47,9 +48,8 @@ finetune:
       max_rounds: 1
       train: {{batch_size: 8, steps_per_epoch: 2, max_epochs: 1, patience: 3}}
 evaluate:
-  csg2d: {{domain: csg2d, checkpoint: {root}/sp.pt, prepared_dir: {root}/prepared, out_dir: unused}}
+  csg2d: {{}}
 report:
-  domains: [csg2d]
   per_round: {{}}
 flows:
   methods: [st]
@@ -57,22 +57,21 @@ flows:
   retry_delay_seconds: 0
   threads_per_task: 1
   dask_address: {dask}
-  out_dir: {out}
   evaluate: false
 """
 
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory, datasets_dir) -> Path:
-    """Prepared 2D shapes and a tiny model with random weights."""
+    """The layout root of a project with the prepared 2D shapes and a tiny pretrained model (random weights);
+    each flow run writes under its ``runs/flows/<run name>/``."""
     return csg2d_inputs(tmp_path_factory.mktemp("scale-out"), datasets_dir)
 
 
-def params(root: Path, out: Path, dask: str | None = None) -> Path:
-    """A params file in ``out`` for the flow, its runs under ``out/flows``."""
+def params(out: Path, dask: str | None = None) -> Path:
+    """A params file in ``out`` for the flow."""
     dest = out / "params.yaml"
-    dest.write_text(PARAMS.format(root=root, out=out / "flows", train=TRAIN_SHAPES, shards=SHARDS,
-                                  dask=dask or "null"))
+    dest.write_text(PARAMS.format(train=TRAIN_SHAPES, shards=SHARDS, dask=dask or "null"))
     return dest
 
 
@@ -113,8 +112,9 @@ def one_process_pbest(root: Path):
     from plad.domains import get_domain
     from plad.search import infer_batched
 
-    model, _ = load_model(root / "sp.pt")
-    train = load_prepared(root / "prepared" / "csg2d.npz", "train")[:TRAIN_SHAPES]
+    layout = Layout(root)
+    model, _ = load_model(layout.model("csg2d"))
+    train = load_prepared(layout.prepared("csg2d"), "train")[:TRAIN_SHAPES]
     return infer_batched(model, get_domain("csg2d"), train, 3, 10)
 
 
@@ -149,9 +149,8 @@ def test_round_inference_on_a_dask_cluster_survives_a_killed_worker(prefect_serv
         client.wait_for_workers(2, timeout=120)
         victim = next(a for a, w in client.scheduler_info()["workers"].items() if w["name"] == "w1")
         flow_log = tmp_path / "flow.log"
-        procs["flow"] = start([sys.executable, "-m", "flows.finetune", "--params",
-                               str(params(smoke, tmp_path, address)), "--run-name", "killed"],
-                              env, flow_log)
+        procs["flow"] = start([sys.executable, "-m", "flows.finetune", "--params", str(params(tmp_path, address)),
+                               "--root", str(smoke), "--run-name", "killed"], env, flow_log, cwd=tmp_path)
         # kill worker w1 (its nanny and worker process) while it executes an inference shard
         killed: list[str] = []
         deadline = time.monotonic() + 240
@@ -175,7 +174,7 @@ def test_round_inference_on_a_dask_cluster_survives_a_killed_worker(prefect_serv
     shards = [state for name, state in flow_task_runs(api_url, "killed") if name.startswith("infer shard")]
     assert shards == ["Completed"] * SHARDS
     values, programs, _ = one_process_pbest(smoke)
-    pbest = PBest.load(tmp_path / "flows" / "killed" / "finetune" / "csg2d" / "st" / "pbest.npz",
+    pbest = PBest.load(Layout(smoke).flow_run("killed").finetune_dir("csg2d", "st") / "pbest.npz",
                        get_domain("csg2d").metric)
     assert pbest.has.all() and [pbest.program(i) for i in range(TRAIN_SHAPES)] == programs
     assert np.allclose(pbest.values, values, atol=1e-9)
@@ -190,10 +189,13 @@ def test_deployment_on_a_work_pool_runs_on_a_process_worker(prefect_server, smok
     api_url, server_env = prefect_server
     before = children()
     db = tmp_path / "mlflow.db"
+    # a profile beside the params file: fewer training shapes, chosen by the deployment
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "fewer.yaml").write_text(f"finetune:\n  csg2d:\n    train_limit: {FEWER_SHAPES}\n")
     with temporary_settings({PREFECT_API_URL: api_url}):
         # the run's MLflow store comes with the deployment (job variables), as a team's tracking server would
-        deploy("plad-test", "smoke", params_path=str(params(smoke, tmp_path)), methods=["st"],
-               env={"MLFLOW_TRACKING_URI": f"sqlite:///{db}"})
+        deploy("plad-test", "smoke", params_path=str(params(tmp_path)), profile="fewer", methods=["st"],
+               root=str(smoke), env={"MLFLOW_TRACKING_URI": f"sqlite:///{db}"})
     # the worker runs in a folder of its own: the deployment's pull step sets the repository as working directory
     (tmp_path / "worker").mkdir()
     log = tmp_path / "worker.log"
@@ -207,5 +209,6 @@ def test_deployment_on_a_work_pool_runs_on_a_process_worker(prefect_server, smok
         stop(worker)
     assert left_behind(before) == []
     assert ("finetune/st/csg2d", "FINISHED") in mlflow_runs(db)
-    summary = tmp_path / "flows" / "smoke" / "results" / "finetune" / "csg2d" / "st.json"
+    summary = Layout(smoke).flow_run("smoke").finetune_summary("csg2d", "st")
     assert summary.exists(), tail(log)
+    assert json.loads(summary.read_text())["train_shapes"] == FEWER_SHAPES   # the profile was applied
