@@ -125,6 +125,19 @@ def test_params_errors_name_the_file_and_key(tmp_path):
         section(load_params(q), "pretrain.csg2d", stage_classes()["pretrain"])
 
 
+def test_a_profile_argument_replaces_the_files_profile_key(tmp_path):
+    # what a flow run's `profile` parameter does (flows.finetune, flows.deploy): as -S profile=... would
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    path = project(tmp_path / "a", "cpu")
+    smoke = load_params(path, profile="smoke")
+    assert smoke == load_params(project(tmp_path / "b", "smoke")) != load_params(path)
+    assert smoke.profile_file == tmp_path / "a" / "profiles" / "smoke.yaml"
+    assert smoke["pretrain"]["csg2d"]["train"]["max_epochs"] == 2 and smoke["report"]["profile"] == "smoke"
+    with pytest.raises(ConfigError, match=r"^.*/a/params.yaml: profile 'gpu': no such file .*/a/profiles/gpu.yaml$"):
+        load_params(path, profile="gpu")
+
+
 def leaves(node, path=()):
     if isinstance(node, dict) and node:
         for k, v in node.items():
