@@ -1,9 +1,15 @@
 """Scaling on this machine: DDP training steps/s with 1 and 2 CPU processes, round inference with 1 and 2 Dask workers.
 
-Usage: ``python -m bench.scaling [--params profiles/cpu.yaml] [--domain csg2d] [--synthetic data/synthetic]
-[--prepared data/prepared] [--checkpoint FILE] [--steps 30] [--shapes 400] [--shards 4]``
+Usage: ``python -m bench.scaling [--params params.yaml] [--profile PROFILE] [--domain csg2d] [--root .]
+[--checkpoint FILE] [--steps 30] [--shapes 400] [--shards 4]``
 
-Training: the pretraining step of ``pretrain.<domain>`` in the params (its
+The configs are those of the pipeline: ``--params`` with its profile, or
+``profiles/<PROFILE>.yaml`` applied instead (:func:`plad.config.load_params`);
+the synthetic programs and the prepared shapes are those of the layout root
+``--root`` (:mod:`plad.layout`: ``data/synthetic/<domain>.npz``,
+``data/prepared/<domain>.npz``).
+
+Training: the pretraining step of ``pretrain.<domain>`` (its
 architecture and batch size per process; batches dealt out from one
 permutation as in :mod:`plad.stages.pretrain`, the loss through
 :func:`plad.distributed.data_parallel`), timed over ``--steps`` optimizer
@@ -11,7 +17,7 @@ steps after warm-up, in 1 process and in 2 processes (gloo on loopback, one
 torch thread each). Throughput is shapes per second over all processes.
 
 Inference: the round's sharded beam inference over ``--shapes`` real
-training shapes (``finetune.<domain>.plad``'s beam and batch), the shards
+training shapes (``finetune.<domain>``'s ``plad`` beam and batch), the shards
 (:func:`flows.finetune._infer_shard`, as the flow's tasks run them) mapped
 over a Dask ``LocalCluster`` of 1 and of 2 worker processes with one thread
 each, after one warm-up shard per worker. Without ``--checkpoint`` the model
@@ -33,7 +39,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -49,20 +54,28 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def pretrain_config(args: argparse.Namespace):
+    """The ``pretrain.<domain>`` config of the params (with the profile)."""
+    from plad.config import load_params, section
+    from plad.stages.pretrain import PretrainConfig
+
+    return section(load_params(args.params, profile=args.profile), f"pretrain.{args.domain}", PretrainConfig)
+
+
 def _train_rank(rank: int, world: int, port: int, args: argparse.Namespace, results) -> None:
     """One process of the training measurement (``world`` of them): steps/s of the pretraining step."""
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
     from plad import distributed as dist
-    from plad.config import load_params, section
     from plad.domains import get_domain
+    from plad.layout import Layout
     from plad.model import ModelConfig, PLADNet
-    from plad.stages.pretrain import PretrainConfig, load_programs, make_batch
+    from plad.stages.pretrain import load_programs, make_batch
 
-    cfg = section(load_params(args.params), f"pretrain.{args.domain}", PretrainConfig, args.params)
+    cfg = pretrain_config(args)
     domain = get_domain(args.domain)
-    train = load_programs(Path(args.synthetic) / f"{args.domain}.npz")["train"]
+    train = load_programs(Layout(args.root).synthetic(args.domain))["train"]
     torch.manual_seed(0)
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain))
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
@@ -108,9 +121,7 @@ def train_throughput(world: int, args: argparse.Namespace) -> tuple[float, float
     cpu = sum(m[2] for m in measured) / world / args.steps
     for key in ("RANK", "LOCAL_RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         os.environ.pop(key, None)   # the 1-process call set them in this process
-    from plad.config import load_params
-
-    bs = load_params(args.params)["pretrain"][args.domain]["train"]["batch_size"]
+    bs = pretrain_config(args).train.batch_size
     return args.steps / seconds, args.steps * bs * world / seconds, cpu
 
 
@@ -141,10 +152,10 @@ def infer_throughput(workers: int, model, shapes: np.ndarray, beam: int, batch: 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", default="profiles/cpu.yaml")
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--profile", help="apply profiles/<PROFILE>.yaml instead of the one the params name")
     parser.add_argument("--domain", default="csg2d")
-    parser.add_argument("--synthetic", default="data/synthetic")
-    parser.add_argument("--prepared", default="data/prepared")
+    parser.add_argument("--root", default=".", help="layout root of the synthetic and prepared data (plad.layout)")
     parser.add_argument("--checkpoint", default=None, help="model for inference (default: random weights)")
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--shapes", type=int, default=400)
@@ -156,22 +167,22 @@ def main(argv: list[str] | None = None) -> None:
     from plad.config import load_params, section
     from plad.data import load_prepared
     from plad.domains import get_domain
+    from plad.layout import Layout
     from plad.model import ModelConfig, PLADNet
     from plad.stages.finetune import FinetuneStageConfig
-    from plad.stages.pretrain import PretrainConfig
 
-    params = load_params(args.params)
-    pre = section(params, f"pretrain.{args.domain}", PretrainConfig, args.params)
-    ft = section(params, f"finetune.{args.domain}", FinetuneStageConfig, args.params)
+    pre = pretrain_config(args)
+    ft = section(load_params(args.params, profile=args.profile), f"finetune.{args.domain}", FinetuneStageConfig)
     domain = get_domain(args.domain)
     if args.checkpoint:
         model, _ = load_model(args.checkpoint, expect_domain=args.domain)
     else:
         torch.manual_seed(0)
         model = PLADNet(ModelConfig.for_domain(pre.model, domain)).eval()
-    shapes = load_prepared(Path(args.prepared) / f"{args.domain}.npz", "train")[: args.shapes]
+    shapes = load_prepared(Layout(args.root).prepared(args.domain), "train")[: args.shapes]
 
-    print(f"{args.domain}, {args.params}: machine with {os.cpu_count()} cores, 1 torch thread per process; "
+    params = args.params + (f" with profile {args.profile}" if args.profile else "")
+    print(f"{args.domain}, {params}: machine with {os.cpu_count()} cores, 1 torch thread per process; "
           f"load average before {os.getloadavg()[0]:.2f}")
     steps1, shapes1, cpu1 = train_throughput(1, args)
     steps2, shapes2, cpu2 = train_throughput(2, args)
