@@ -20,8 +20,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+# The parser, --help, argument errors, `plad models` and `plad data check` import neither
+# torch, MLflow nor open3d (a test checks it): every command imports what it needs itself.
+if TYPE_CHECKING:
+    import numpy as np
 
 
 class UsageError(Exception):
@@ -36,6 +40,8 @@ def _fail(message: str, status: int) -> int:
 # ---- shape files -------------------------------------------------------------------
 def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
     """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
+    import numpy as np
+
     if not path.exists():
         raise UsageError(f"{path}: no such file")
     suffix = path.suffix.lower()
@@ -130,17 +136,27 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_data(args: argparse.Namespace) -> int:
-    from plad.data import resolve_data_dir
-    from plad.datasets import cad
+    import importlib
+
+    from plad.data import DataError, resolve_data_dir
+    from plad.datasets import CHECKS, cad
 
     if args.action == "download":
         path = cad.download_cad(resolve_data_dir(args.data_dir))
         print(f"downloaded and verified {path}")
         return 0
-    for split in ("train", "val", "test"):
-        shapes = cad.load_cad(args.data_dir, split)
-        print(f"{cad.CAD.name} {split}: {len(shapes)} shapes {shapes.shape[1:]}")
-    return 0
+    # every target source the domains read (the CAD file; the PartNet programs of both 3D domains),
+    # each reported on its own, so that one missing file does not hide the state of the others
+    failed = 0
+    for target in CHECKS.values():
+        module, attr = target.split(":")
+        try:
+            for line in getattr(importlib.import_module(module), attr)(args.data_dir):
+                print(line)
+        except DataError as err:
+            failed += 1
+            print(f"plad: error: {err}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
@@ -347,17 +363,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from plad.data import DataError
-    from plad.grammar import ProgramError
-
     try:
         return args.func(args)
-    except ProgramError as err:
-        return _fail(f"invalid {args.domain} program: {err}", 2)
     except UsageError as err:
         return _fail(str(err), 2)
-    except DataError as err:
-        return _fail(str(err), 1)
+    except Exception as err:
+        # An error of a module the command never imported cannot be raised, so the error types
+        # are looked up among the loaded modules (importing plad.grammar here would import torch).
+        grammar, data = sys.modules.get("plad.grammar"), sys.modules.get("plad.data")
+        if grammar is not None and isinstance(err, grammar.ProgramError):
+            return _fail(f"invalid {args.domain} program: {err}", 2)
+        if data is not None and isinstance(err, data.DataError):
+            return _fail(str(err), 1)
+        raise
 
 
 if __name__ == "__main__":

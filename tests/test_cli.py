@@ -115,4 +115,5 @@ def test_data_check_reports_a_missing_dataset_in_one_line(tmp_path):
     res = run("data", "check", "--data-dir", str(tmp_path))
     assert res.returncode == 1
     assert str(tmp_path) in res.stderr and "Traceback" not in res.stderr
-    assert len(res.stderr.strip().splitlines()) == 1
+    # one line for each missing source: the CAD file and the PartNet programs
+    assert len(res.stderr.strip().splitlines()) == 2
