@@ -8,6 +8,7 @@
     plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
     plad search DOMAIN shape.npy --set insertions=8
     plad models
+    plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
 
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
@@ -282,16 +283,57 @@ def cmd_search(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from plad.tracking import registered_models, tracking_uri
+    """List the shipped and the registered models (the default one of each domain marked), or ship one."""
+    if args.models_command == "ship":
+        return _ship(args)
+    from plad.domains import domain_names
+    from plad.resolve import configured_store
+    from plad.shipped import ShipError, list_shipped, shipped_dir
 
-    rows = registered_models()
-    if not rows:
-        print(f"no registered models in {tracking_uri()}", file=sys.stderr)
-        return 0
-    print(f"{'model':<24} {'version':>7}  {'aliases':<12} {'method':<18} test metric")
-    for r in rows:
-        print(f"{r['name']:<24} {r['version']:>7}  {','.join(r['aliases']) or '-':<12} "
-              f"{r['method'] or '-':<18} {r['test'] or '-'}")
+    rows = []   # (domain, source, model, method, test)
+    try:
+        for m in list_shipped():
+            t = m.test
+            test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
+            rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test))
+    except ShipError as err:
+        raise UsageError(str(err)) from None
+    store = configured_store()
+    if store is not None:   # MLflow is imported only to read a configured store
+        from plad.tracking import registered_models
+
+        for r in registered_models():
+            domain = r["name"].removeprefix("plad-")
+            aliases = "".join(f"@{a}" for a in r["aliases"])
+            rows.append((domain if domain in domain_names() else r["name"], "registered",
+                         f"models:/{r['name']}/{r['version']} {aliases}".rstrip(), r["method"] or "-",
+                         r["test"] or "-"))
+    # the model `plad infer DOMAIN` uses without --model: the champion, else the shipped one
+    default = {}
+    for domain, source, model, *_ in rows:
+        if source == "registered" and "@champion" in model or source == "shipped" and domain not in default:
+            default[domain] = model
+    print(f"{'domain':<14} {'source':<10} {'method':<18} {'test metric':<36} model  (* = used by default)")
+    for domain, source, model, method, test in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
+        mark = "*" if default.get(domain) == model else " "
+        print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
+    print(f"shipped models: {shipped_dir()}; MLflow store: "
+          f"{store or 'none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)'}", file=sys.stderr)
+    return 0
+
+
+def _ship(args: argparse.Namespace) -> int:
+    from plad.shipped import ShipError, ship
+
+    try:
+        shipped = ship(args.domain, args.checkpoint, args.metrics, dest=args.dest, root=args.root,
+                       params=args.params, data_dir=args.data_dir)
+    except ShipError as err:
+        raise UsageError(str(err)) from None
+    git = shipped.info["provenance"]["git"]
+    print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes) and "
+          f"{shipped.checkpoint.with_name('model.json')}: test {shipped.test.get('metric')} "
+          f"{shipped.test.get('mean')}, git {git['revision']}{' (dirty)' if git['dirty'] else ''}")
     return 0
 
 
@@ -334,7 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: .png/.jpg/... images or .npy; 3D: .obj/.ply/.off/.stl meshes or .npy voxels; "
                         "a folder means all supported files in it")
     p.add_argument("--model", default=None,
-                   help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion)")
+                   help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion of the "
+                        "MLflow store if one is configured and has it, else the model shipped with PLAD)")
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
     p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
     p.set_defaults(func=cmd_infer)
@@ -356,8 +399,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="search setting, e.g. insertions=5 or refine.rounds=1 (repeatable)")
     p.set_defaults(func=cmd_search)
 
-    p = sub.add_parser("models", help="list the registered models (MLflow registry) with their test metric")
-    p.set_defaults(func=cmd_models)
+    p = sub.add_parser("models", help="list the shipped and the registered models with their test metrics; "
+                                      "`plad models ship` packages a trained checkpoint as a shipped model")
+    p.set_defaults(func=cmd_models, models_command=None)
+    ms = p.add_subparsers(dest="models_command")
+    q = ms.add_parser("ship", help="package a trained checkpoint as the shipped model of its domain")
+    q.add_argument("domain", choices=domain_names())
+    q.add_argument("checkpoint", help="the trained checkpoint, e.g. runs/finetune/DOMAIN/lest_st/best.pt")
+    q.add_argument("--metrics", required=True,
+                   help="the metrics.json of its test evaluation, e.g. results/eval/lest_st/DOMAIN/metrics.json")
+    q.add_argument("--root", default=".", help="the layout root it was trained in (params, git, prepared data; "
+                                               "default: .)")
+    q.add_argument("--params", default="params.yaml", help="params file, relative to --root (default params.yaml)")
+    q.add_argument("--data-dir", default=None, help="data directory (for the data files' checksums)")
+    q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
+                                                "or $PLAD_SHIPPED_DIR)")
     return parser
 
 

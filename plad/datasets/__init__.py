@@ -13,3 +13,10 @@ CHECKS: dict[str, str] = {
     "cad": "plad.datasets.cad:check",
     "partnet": "plad.datasets.partnet.source:check",
 }
+
+#: TargetSource.name -> "module:function" returning {file: sha256} of the source's data files
+#: (the provenance of a shipped model)
+FILES: dict[str, str] = {
+    "cad": "plad.datasets.cad:checksums",
+    "partnet": "plad.datasets.partnet.source:checksums",
+}

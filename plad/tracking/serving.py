@@ -63,6 +63,35 @@ def load_registered(uri: str) -> Any:
     return mlflow_module().pyfunc.load_model(uri)
 
 
+def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
+    """The pyfunc model of ``domain`` chosen as ``plad infer`` chooses (:func:`plad.resolve.resolve`).
+
+    ``model`` (a checkpoint file or an MLflow model URI), else the champion of a configured
+    store, else the shipped model. A logged model is loaded as it was logged; a checkpoint file
+    (``model`` or the shipped one) is saved as a pyfunc model in a temporary folder and loaded
+    from there, so every choice returns the same kind of object: ``predict(shapes, params={"beam": k})``.
+    Raises :class:`plad.resolve.ModelError` (one line) when there is no model.
+    """
+    import tempfile
+
+    from plad.resolve import resolve
+
+    choice = resolve(domain, model)
+    if choice.uri is not None:
+        return load_registered(choice.uri)
+    mlflow = mlflow_module()
+    from mlflow.models import ModelSignature
+    from mlflow.types import ParamSchema, ParamSpec
+
+    folder = Path(tempfile.mkdtemp(prefix="plad-pyfunc-")) / "model"
+    signature = ModelSignature(inputs=None, outputs=None,
+                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
+    mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
+                             artifacts={"checkpoint": str(choice.path)}, pip_requirements=pip_requirements(),
+                             signature=signature)
+    return mlflow.pyfunc.load_model(str(folder))
+
+
 # -- the pyfunc wrapper ---------------------------------------------------------------------------
 def _stack_input(model_input: Any, shape: tuple[int, ...]) -> np.ndarray:
     """(N, *shape) bool numpy array from an ndarray, a list of arrays or a DataFrame."""

@@ -91,3 +91,9 @@ def check(data_dir: str | os.PathLike | None = None) -> list[str]:
     return [f"PartNet programs {path}: {len(programs)} programs ({per_cat}), sha256 {sha256(path)}",
             "PartNet " + ", ".join(f"{s}: {n} programs" for s, n in counts.items())
             + " (executed and voxelized at 32^3 by the prepare stage)"]
+
+
+def checksums(data_dir: str | os.PathLike | None = None) -> dict[str, str]:
+    """{the programs tarball: its sha256}."""
+    path = find_source(data_dir)
+    return {str(path): sha256(path)}
