@@ -86,9 +86,11 @@ def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
     folder = Path(tempfile.mkdtemp(prefix="plad-pyfunc-")) / "model"
     signature = ModelSignature(inputs=None, outputs=None,
                                params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
-    mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
-                             artifacts={"checkpoint": str(choice.path)}, pip_requirements=pip_requirements(),
-                             signature=signature)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*input example.*")
+        mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
+                                 artifacts={"checkpoint": str(choice.path)}, pip_requirements=pip_requirements(),
+                                 signature=signature)
     return mlflow.pyfunc.load_model(str(folder))
 
 
