@@ -46,3 +46,13 @@ def test_the_environment_wins_over_the_defaults(tmp_path):
     env.update(PYTHONPATH=str(REPO), PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="300")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.split() == ["300", "1"]
+
+
+def test_serve_without_a_server_is_a_one_line_error(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(PYTHONPATH=str(REPO), PREFECT_HOME=str(tmp_path / "prefect"))
+    res = subprocess.run([sys.executable, "-m", "flows.finetune", "--params", str(REPO / "params.yaml"), "--serve"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "--serve needs a running Prefect server" in res.stderr and "PREFECT_API_URL" in res.stderr
+    assert "Starting temporary server" not in res.stderr
