@@ -1,4 +1,4 @@
-"""Which model a command uses, in one place (``plad infer``, the pyfunc of :func:`plad.tracking.load_pyfunc`).
+"""Which model a command uses, in one place (``plad infer``, the pyfunc model of :func:`load_pyfunc`).
 
 In order:
 
@@ -11,13 +11,16 @@ In order:
 
 A look-up never creates anything: an unconfigured store is not opened (opening a SQLite URI
 would create an empty database), and a champion is downloaded to a temporary folder.
-Only the checkpoint's location is resolved here; loading it (torch) is the caller's.
+Only the checkpoint's location is resolved here; loading it (torch) is the caller's, or
+:func:`load_pyfunc`'s, which returns it as an MLflow pyfunc model. No pipeline stage imports
+this module (they name their models by the layout).
 """
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from plad.shipped import ShipError, shipped_dir, shipped_model
 
@@ -103,3 +106,21 @@ def resolve(domain: str, model: str | None = None) -> Choice:
         raise ModelError(f"no {domain} model: {where}, and none is shipped in {shipped_dir()}; pass --model a "
                          "checkpoint file, or train and register one with `dvc repro`")
     return Choice("shipped", shipped.describe(), shipped.checkpoint, tuple(notes))
+
+
+def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
+    """The pyfunc model of ``domain`` chosen as ``plad infer`` chooses (:func:`resolve`).
+
+    ``model`` (a checkpoint file or an MLflow model URI), else the champion of a configured
+    store, else the shipped model. A logged model is loaded as it was logged; a checkpoint file
+    (``model`` or the shipped one) becomes the same kind of pyfunc model
+    (:func:`plad.tracking.serving.load_checkpoint_pyfunc`), so every choice returns an object
+    with ``predict(shapes, params={"beam": k})``. Raises :class:`ModelError` (one line) when
+    there is no model.
+    """
+    from plad.tracking.serving import load_checkpoint_pyfunc, load_registered
+
+    choice = resolve(domain, model)
+    if choice.uri is not None:
+        return load_registered(choice.uri)
+    return load_checkpoint_pyfunc(choice.path, beam)

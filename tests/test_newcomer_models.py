@@ -193,7 +193,7 @@ def test_a_store_without_the_champion_falls_back_to_the_shipped_model(shipped, s
 
 def test_the_pyfunc_loader_resolves_like_infer(shipped, monkeypatch):
     from plad.domains import get_domain
-    from plad.tracking import load_pyfunc
+    from plad.resolve import load_pyfunc
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     monkeypatch.setenv("PLAD_SHIPPED_DIR", str(shipped))

@@ -63,22 +63,14 @@ def load_registered(uri: str) -> Any:
     return mlflow_module().pyfunc.load_model(uri)
 
 
-def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
-    """The pyfunc model of ``domain`` chosen as ``plad infer`` chooses (:func:`plad.resolve.resolve`).
+def load_checkpoint_pyfunc(checkpoint_path: str | os.PathLike, beam: int = 10) -> Any:
+    """A checkpoint file as the pyfunc model :func:`log_pyfunc` would log, without a store.
 
-    ``model`` (a checkpoint file or an MLflow model URI), else the champion of a configured
-    store, else the shipped model. A logged model is loaded as it was logged; a checkpoint file
-    (``model`` or the shipped one) is saved as a pyfunc model in a temporary folder and loaded
-    from there, so every choice returns the same kind of object: ``predict(shapes, params={"beam": k})``.
-    Raises :class:`plad.resolve.ModelError` (one line) when there is no model.
+    Saved as an MLflow model in a temporary folder (not under the working directory) and
+    loaded from there, so it behaves exactly as a logged one.
     """
     import tempfile
 
-    from plad.resolve import resolve
-
-    choice = resolve(domain, model)
-    if choice.uri is not None:
-        return load_registered(choice.uri)
     mlflow = mlflow_module()
     from mlflow.models import ModelSignature
     from mlflow.types import ParamSchema, ParamSpec
@@ -89,8 +81,8 @@ def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*input example.*")
         mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
-                                 artifacts={"checkpoint": str(choice.path)}, pip_requirements=pip_requirements(),
-                                 signature=signature)
+                                 artifacts={"checkpoint": str(Path(checkpoint_path))},
+                                 pip_requirements=pip_requirements(), signature=signature)
     return mlflow.pyfunc.load_model(str(folder))
 
 
