@@ -316,8 +316,14 @@ def cmd_models(args: argparse.Namespace) -> int:
     for domain, source, model, method, test in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
         mark = "*" if default.get(domain) == model else " "
         print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
-    print(f"shipped models: {shipped_dir()}; MLflow store: "
-          f"{store or 'none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)'}", file=sys.stderr)
+    if not rows:
+        print("(no shipped or registered models)")
+    import os
+
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    none = f"none ($MLFLOW_TRACKING_URI={env} does not exist yet)" if env else \
+        "none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)"
+    print(f"shipped models: {shipped_dir()}; MLflow store: {store or none}", file=sys.stderr)
     return 0
 
 

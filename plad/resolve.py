@@ -21,6 +21,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 from plad.shipped import ShipError, shipped_dir, shipped_model
 
@@ -41,8 +42,14 @@ def configured_store() -> str | None:
 
     uri = os.environ.get(TRACKING_ENV)
     if uri:
+        # a local store that does not exist yet would be created by opening it: not configured
         db = sqlite_path(uri)
-        return None if db is not None and not db.is_file() else uri
+        if db is not None:
+            return uri if db.is_file() else None
+        if uri.startswith("file:") or "://" not in uri:
+            local = Path(urlparse(uri).path if uri.startswith("file:") else uri)
+            return uri if local.exists() else None
+        return uri
     return tracking_uri() if (Path.cwd() / "mlflow.db").is_file() else None
 
 
