@@ -19,6 +19,7 @@ Errors in the user's input are one line on stderr and a non-zero status
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -318,8 +319,6 @@ def cmd_models(args: argparse.Namespace) -> int:
         print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
     if not rows:
         print("(no shipped or registered models)")
-    import os
-
     env = os.environ.get("MLFLOW_TRACKING_URI")
     none = f"none ($MLFLOW_TRACKING_URI={env} does not exist yet)" if env else \
         "none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)"
