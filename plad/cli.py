@@ -404,7 +404,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_search)
 
     p = sub.add_parser("models", help="list the shipped and the registered models with their test metrics; "
-                                      "`plad models ship` packages a trained checkpoint as a shipped model")
+                                      "`plad models ship` packages a trained checkpoint as a shipped model",
+                       description="Without a subcommand: list the models shipped with PLAD and those registered "
+                                   "in the MLflow store (if one is configured), with their test metrics; * marks "
+                                   "the one `plad infer DOMAIN` uses without --model.")
     p.set_defaults(func=cmd_models, models_command=None)
     ms = p.add_subparsers(dest="models_command")
     q = ms.add_parser("ship", help="package a trained checkpoint as the shipped model of its domain")
