@@ -206,3 +206,15 @@ def test_the_pyfunc_loader_resolves_like_infer(shipped, monkeypatch):
     assert list(out.columns) == ["program", "chamfer"] and len(out) == 1
     assert out["program"][0].endswith("$") and np.isfinite(out["chamfer"][0])
     assert sorted(p.name for p in shipped.iterdir()) == ["csg2d"]
+
+
+def test_the_shipped_files_are_package_data():
+    import fnmatch
+
+    tomllib = pytest.importorskip("tomllib")
+    from plad.shipped import CHECKPOINT, SIDECAR
+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    globs = config["package-data"]["plad.shipped"]
+    for name in (CHECKPOINT, SIDECAR):
+        assert any(fnmatch.fnmatch(f"csg2d/{name}", g) for g in globs), name
