@@ -69,7 +69,7 @@ def test_score_single_png_pair(tmp_path):
     res = run("score", "csg2d", "--pred", str(tmp_path / "a.png"), "--target", str(tmp_path / "b.png"))
     assert res.returncode == 0, res.stderr
     lines = res.stdout.strip().splitlines()
-    assert len(lines) == 1
+    assert len(lines) == 2 and lines[1] == f"mean {lines[0]}"
     metric = get_domain("csg2d").metric
     want = metric(torch.from_numpy(render(a)[None]), torch.from_numpy(render(b)[None]))[0].item()
     assert float(lines[0]) == pytest.approx(want, abs=1e-6)
@@ -115,4 +115,5 @@ def test_data_check_reports_a_missing_dataset_in_one_line(tmp_path):
     res = run("data", "check", "--data-dir", str(tmp_path))
     assert res.returncode == 1
     assert str(tmp_path) in res.stderr and "Traceback" not in res.stderr
-    assert len(res.stderr.strip().splitlines()) == 1
+    # one line for each missing source: the CAD file and the PartNet programs
+    assert len(res.stderr.strip().splitlines()) == 2
