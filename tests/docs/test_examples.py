@@ -3,7 +3,6 @@ programs examples/README.md names, and every examples/ path the README uses exis
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,8 @@ import torch
 
 from plad.domains import domain_names, get_domain
 from plad.inputs import read_inputs
+from tests.conftest import REPO_ROOT as REPO
 
-REPO = Path(__file__).resolve().parent.parent
 EXAMPLES = REPO / "examples"
 
 

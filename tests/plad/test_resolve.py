@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from plad.cli import main
+from tests.conftest import REPO_ROOT as REPO
 
-REPO = Path(__file__).resolve().parent.parent
 PROGRAM = "c(32,32,16)s(40,40,12)-$"
 
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+from tests.conftest import REPO_ROOT as REPO
+
 HEAVY = ("torch", "mlflow", "open3d")
 
 PROBE = """

@@ -4,9 +4,9 @@ is in the README's real-data table."""
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+from tests.conftest import REPO_ROOT as REPO
+
 README = (REPO / "README.md").read_text()
 HEADINGS = {m.group(1).strip() for m in re.finditer(r"^#+ (.+)$", README, re.M)}
 
