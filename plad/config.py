@@ -232,6 +232,11 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
     values = {}
     for key, value in raw.items():
         hint = hints[key]
+        if value is not None and typing.get_origin(hint) in (typing.Union, types.UnionType):
+            # an optional dataclass (``X | None``): a mapping builds X
+            inner = [a for a in typing.get_args(hint) if a is not type(None)]
+            if len(inner) == 1 and dataclasses.is_dataclass(inner[0]):
+                hint = inner[0]
         if dataclasses.is_dataclass(hint):
             values[key] = build(hint, value, f"{where}.{key}", source)
             continue

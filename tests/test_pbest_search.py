@@ -1,0 +1,130 @@
+"""P_BEST with search (plad.pbest_search): seeding and rewriting never make an entry worse, and resume."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from plad.config import ConfigError, build
+from plad.domains import get_domain
+from plad.domains.base import pad_programs
+from plad.methods import MethodConfig, PBestSearchConfig
+from plad.pbest import PBest
+from plad.pbest_search import PBestSearch, check
+
+SMALL = {"insertions": 3, "refine": {"rounds": 0}}
+
+
+def _targets(domain, n: int, seed: int = 3) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return domain.execute(pad_programs(domain.sample(n, rng))).numpy()
+
+
+def _pbest_of_random_programs(domain, targets: np.ndarray, seed: int = 5) -> PBest:
+    """P_BEST filled with random programs (poor entries) for every target."""
+    programs = domain.sample(len(targets), np.random.default_rng(seed))
+    execs = domain.execute(pad_programs(programs))
+    values = domain.metric(execs, torch.from_numpy(targets)).numpy()
+    pbest = PBest(len(targets), domain.shape, domain.tokens.max_len, domain.metric)
+    pbest.update(np.arange(len(targets)), programs, values, execs.numpy())
+    return pbest
+
+
+def _oriented(domain, v):
+    return -v if domain.metric.higher_is_better else v
+
+
+def test_seeding_improves_pbest_and_never_makes_an_entry_worse(tmp_path):
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 12)
+    pbest = _pbest_of_random_programs(domain, targets)
+    before = pbest.values.copy()
+    cfg = PBestSearchConfig(seed_share=1.0, seed_config=SMALL, rewrite_share=0.5, rewrite_config={"rounds": 1},
+                            chunk=5)
+    row = PBestSearch(domain, cfg, tmp_path).after_infer(1, pbest, targets)
+    assert not (_oriented(domain, pbest.values) > _oriented(domain, before)).any()   # never worse
+    assert np.nanmean(_oriented(domain, pbest.values)) < np.nanmean(_oriented(domain, before))   # better overall
+    assert row["seed_shapes"] == 12 and row["seed_improved"] > 0 and row["seed_gain"] > 0
+    assert row["rewrite_shapes"] == 6 and row["rewrite_gain"] >= 0 and row["seed_seconds"] > 0
+    # every entry's tokens, execution and value agree with the domain's executor and metric
+    execs = domain.execute(pad_programs([pbest.program(i) for i in range(len(pbest))]))
+    assert torch.equal(execs, torch.from_numpy(pbest.executions))
+    assert np.array_equal(domain.metric(execs, torch.from_numpy(targets)).numpy(), pbest.values)
+    assert pbest.refined.sum() == 6      # the rewritten entries are marked
+    # a later round rewrites entries not yet refined first
+    row2 = PBestSearch(domain, cfg, tmp_path).after_infer(2, pbest, targets)
+    assert "seed_shapes" not in row2 and pbest.refined.all()
+
+
+def test_rewriting_is_never_worse_in_3d(tmp_path):
+    domain = get_domain("csg3d")
+    targets = _targets(domain, 4)
+    pbest = _pbest_of_random_programs(domain, targets)
+    before = pbest.values.copy()
+    cfg = PBestSearchConfig(seed_share=0.0, rewrite_share=1.0, rewrite_config={"rounds": 1, "po_sweeps": 1})
+    row = PBestSearch(domain, cfg, tmp_path).after_infer(1, pbest, targets)
+    assert not (_oriented(domain, pbest.values) > _oriented(domain, before)).any()
+    assert row["rewrite_shapes"] == 4 and pbest.refined.all()
+
+
+def test_a_killed_seeding_resumes_without_redoing_finished_chunks(tmp_path, monkeypatch):
+    import plad.pbest_search as ps
+
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 9)
+    cfg = PBestSearchConfig(seed_share=1.0, seed_config=SMALL, rewrite_share=0.0, chunk=3)
+    real = ps.run_chunks
+    searched: list[int] = []
+
+    def dies_after_two(*args, **kwargs):
+        for k, r in enumerate(real(*args, **kwargs)):
+            if k == 2:
+                raise KeyboardInterrupt   # killed while the third chunk's result arrives
+            searched.extend(r.index.tolist())
+            yield r
+
+    monkeypatch.setattr(ps, "run_chunks", dies_after_two)
+    pbest = PBest(len(targets), domain.shape, domain.tokens.max_len, domain.metric)
+    with pytest.raises(KeyboardInterrupt):
+        PBestSearch(domain, cfg, tmp_path).after_infer(1, pbest, targets)
+    assert len(sorted((tmp_path / "search" / "seed").glob("chunk_*.npz"))) == 2
+    assert len(searched) == 6
+
+    searched.clear()
+    monkeypatch.setattr(ps, "run_chunks", lambda *a, **k: (searched.extend(r.index.tolist()) or r
+                                                           for r in real(*a, **k)))
+    pbest = PBest(len(targets), domain.shape, domain.tokens.max_len, domain.metric)
+    row = PBestSearch(domain, cfg, tmp_path).after_infer(1, pbest, targets)
+    assert len(searched) == 3                      # only the unfinished chunk is searched again
+    assert row["seed_chunks_resumed"] == 2 and pbest.has.all()
+    # the same P_BEST as an uninterrupted seeding
+    fresh = PBest(len(targets), domain.shape, domain.tokens.max_len, domain.metric)
+    PBestSearch(domain, cfg, tmp_path / "again").after_infer(1, fresh, targets)
+    assert np.array_equal(fresh.values, pbest.values) and np.array_equal(fresh.programs, pbest.programs)
+
+
+def test_two_worker_processes_give_the_same_programs(tmp_path):
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 6)
+    pbests = []
+    for workers in (1, 2):
+        cfg = PBestSearchConfig(seed_share=1.0, seed_config=SMALL, rewrite_share=0.0, chunk=3, workers=workers)
+        pbest = PBest(len(targets), domain.shape, domain.tokens.max_len, domain.metric)
+        PBestSearch(domain, cfg, tmp_path / str(workers)).after_infer(1, pbest, targets)
+        pbests.append(pbest)
+    assert np.array_equal(pbests[0].programs, pbests[1].programs)
+
+
+def test_the_search_block_is_typed_and_checked():
+    m = build(MethodConfig, {"method": "lest+st+ws", "search": {"seed_share": 0.5, "chunk": 8}}, "m")
+    assert isinstance(m.search, PBestSearchConfig) and m.search.chunk == 8
+    assert build(MethodConfig, {"method": "lest+st"}, "m").search is None
+    with pytest.raises(ConfigError, match="seed_sahre"):
+        build(MethodConfig, {"search": {"seed_sahre": 0.5}}, "m")
+    domain = get_domain("csg2d")
+    with pytest.raises(ConfigError, match="seed_share"):
+        check(PBestSearchConfig(seed_share=1.5), domain, "x")
+    with pytest.raises(ConfigError, match="rewrite_config"):
+        check(PBestSearchConfig(rewrite_config={"roundz": 1}), domain, "x")
+    with pytest.raises(ConfigError, match="seed_config"):
+        check(PBestSearchConfig(seed_config={"insertionz": 1}), domain, "x")
