@@ -132,3 +132,21 @@ def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[
             os.environ["OMP_NUM_THREADS"] = old
     with pool:
         yield from pool.imap_unordered(_run, jobs)
+
+
+def refine_all(domain: str, programs: Sequence[Sequence[int]], targets: np.ndarray,
+               overrides: dict[str, Any] | None = None, workers: int = 1,
+               chunk: int | None = None) -> tuple[list[list[int]], np.ndarray, np.ndarray]:
+    """Refine ``programs[i]`` towards ``targets[i]`` for all i: (programs, values (N,), executions (N, *shape)),
+    in the input order; no program comes back worse. ``chunk`` (default: the refine batch) shapes per job."""
+    size = chunk or refine_config(overrides).batch
+    chunks = [Chunk(c, targets[c], [list(programs[i]) for i in c]) for c in split(len(programs), size)]
+    out_programs: list[list[int]] = [[] for _ in range(len(programs))]
+    values = np.zeros(len(programs))
+    executions = np.zeros((len(programs), *targets.shape[1:]), dtype=bool)
+    for r in run_chunks(domain, "refine", chunks, overrides, workers):
+        for k, i in enumerate(r.index):
+            out_programs[int(i)] = r.programs[k]
+        values[r.index] = r.values
+        executions[r.index] = r.executions
+    return out_programs, values, executions
