@@ -113,7 +113,7 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
         row = {"mean": round(float(values.mean()), 6), "n": int(len(values))}
         if cfg.refine:
             row["network_mean"] = row["mean"]
-            values, programs, shapes = refine_all(domain.name, programs, targets, cfg.refine_config,
+            programs, values, shapes = refine_all(domain.name, programs, targets, cfg.refine_config,
                                                   cfg.refine_workers)
             row["mean"] = round(float(values.mean()), 6)
         seconds = time.monotonic() - start
