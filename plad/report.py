@@ -332,11 +332,15 @@ def amortization_png(points: dict[str, dict[str, Timed | None]], method: str, be
             ax.plot([x for x, _, _ in net], [y for _, y, _ in net], "-", color="C0", alpha=0.5)
             for x, y, b in net:
                 ax.annotate(f"beam {b}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        labelled = set()
         for key, kind in amortization_keys(method, beams):
             t = got.get(key)
             if t is not None:
                 marker, color = style[kind]
-                ax.scatter([t.seconds_per_shape], [t.test * k], marker=marker, color=color, label=label(key), zorder=3)
+                name = f"{label(method)}, network only" if kind == "network" else label(key)
+                ax.scatter([t.seconds_per_shape], [t.test * k], marker=marker, color=color, zorder=3,
+                           label=None if name in labelled else name)
+                labelled.add(name)
         ax.set_xscale("log")
         ax.set_xlabel("wall-clock seconds per shape (log)")
         ax.set_ylabel(f"test {metric.name}" + (f" x{k:g}" if k != 1 else "") +

@@ -100,3 +100,26 @@ def test_the_report_builds_with_and_without_the_rows_beyond_the_paper(tmp_path):
     assert "| LEST+ST+WS + search-seeded P_BEST, beam 1 (network) | 1.400 | 2.0 ms |" in amort
     assert "| 0.900 | 300.0 ms | 20.0 ms | 280.0 ms |" in amort and "Not computed" not in amort
     assert summary["domains"]["csg2d"]["amortization"]["search"]["test"] == 1.0
+
+
+def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
+    from plad.cli import main
+    from plad.data import load_prepared
+
+    layout = Layout(root)
+    shapes = load_prepared(layout.prepared("csg2d"), "test")[:3]
+    for i, shape in enumerate(shapes):
+        np.save(tmp_path / f"s{i}.npy", shape)
+    got = {}
+    for flag in ([], ["--refine"]):
+        out = tmp_path / ("refined" if flag else "plain")
+        assert main(["infer", "csg2d", *(str(tmp_path / f"s{i}.npy") for i in range(3)), "--model",
+                     str(layout.model("csg2d")), "--beam", "2", "--out", str(out), *flag]) == 0
+        with (out / "results.csv").open() as fh:
+            got[bool(flag)] = np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
+    assert (got[True] <= got[False]).all() and got[True].mean() < got[False].mean()
+    # what is written is the refined program: plad score of its files gives the reported value
+    capsys.readouterr()
+    assert main(["score", "csg2d", "--pred", str(tmp_path / "refined" / "s0.recon.npy"),
+                 "--target", str(tmp_path / "refined" / "s0.input.npy")]) == 0
+    assert float(capsys.readouterr().out.split()[-1]) == pytest.approx(got[True][0], abs=1e-5)
