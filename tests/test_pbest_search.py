@@ -128,3 +128,39 @@ def test_the_search_block_is_typed_and_checked():
         check(PBestSearchConfig(rewrite_config={"roundz": 1}), domain, "x")
     with pytest.raises(ConfigError, match="seed_config"):
         check(PBestSearchConfig(seed_config={"insertionz": 1}), domain, "x")
+
+
+def test_rounds_with_search_seed_then_rewrite_and_log_it_in_the_history(tmp_path):
+    import json
+
+    from plad.job import Job
+    from plad.model import ModelConfig, PLADNet
+    from plad.rounds import RoundHooks, RoundsConfig, run_rounds
+    from plad.train import TrainConfig
+
+    domain = get_domain("csg2d")
+    shapes = _targets(domain, 20, seed=11)
+    cfg = RoundsConfig(infer_beam=2, infer_batch=20, val_beam_epoch=1, val_beam_round=1, max_rounds=2,
+                       round_patience=100, train=TrainConfig(batch_size=8, steps_per_epoch=2, max_epochs=1))
+    search = PBestSearchConfig(seed_share=1.0, seed_config=SMALL, rewrite_share=0.5, rewrite_config={"rounds": 1},
+                               chunk=8)
+    means = {}
+    for name, hooks in (("plain", None), ("search", "yes")):
+        torch.manual_seed(0)
+        model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
+                                    input_shape=domain.shape, d_model=16, n_layers=1, n_heads=2, dim_ff=32,
+                                    enc_channels=(4, 4, 8, 8)))
+        out = tmp_path / name
+        job = Job(model, domain, shapes[:16], shapes[16:], out)
+        if hooks:
+            hooks = RoundHooks(after_infer=PBestSearch(domain, search, out).after_infer)
+        run_rounds(job, MethodConfig("lest+st"), cfg, hooks)
+        history = json.loads((out / "state.json").read_text())["history"]
+        means[name] = history[1]["pbest_mean"]
+        if name == "search":
+            assert history[1]["seed_shapes"] == 16 and "seed_shapes" not in history[2]
+            assert history[1]["rewrite_shapes"] == history[2]["rewrite_shapes"] == 8
+            assert all(history[r]["rewrite_seconds"] > 0 for r in (1, 2))
+            pbest = PBest.load(out / "pbest.npz", domain.metric)
+            assert pbest.refined.sum() >= 8   # the flags are saved with P_BEST
+    assert means["search"] < means["plain"]   # Chamfer: the seeded P_BEST is better than inference alone
