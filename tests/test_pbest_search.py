@@ -164,3 +164,34 @@ def test_rounds_with_search_seed_then_rewrite_and_log_it_in_the_history(tmp_path
             pbest = PBest.load(out / "pbest.npz", domain.metric)
             assert pbest.refined.sum() >= 8   # the flags are saved with P_BEST
     assert means["search"] < means["plain"]   # Chamfer: the seeded P_BEST is better than inference alone
+
+
+def test_a_killed_rewrite_resumes_with_the_same_plan_and_finished_chunks(tmp_path, monkeypatch):
+    import plad.pbest_search as ps
+
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 8)
+    cfg = PBestSearchConfig(seed_share=0.0, rewrite_share=0.5, rewrite_config={"rounds": 1, "po_sweeps": 1},
+                            chunk=2)
+    real = ps.run_chunks
+    done: list[int] = []
+
+    def dies_after_one(*args, **kwargs):
+        for k, r in enumerate(real(*args, **kwargs)):
+            if k == 1:
+                raise KeyboardInterrupt
+            done.extend(r.index.tolist())
+            yield r
+
+    monkeypatch.setattr(ps, "run_chunks", dies_after_one)
+    pbest = _pbest_of_random_programs(domain, targets)
+    with pytest.raises(KeyboardInterrupt):
+        PBestSearch(domain, cfg, tmp_path).after_infer(3, pbest, targets)
+    planned = np.load(tmp_path / "search" / "rewrite_003" / "plan.npz")["index"]
+    assert len(planned) == 4 and set(done) < set(planned.tolist())
+    monkeypatch.setattr(ps, "run_chunks", real)
+    pbest = _pbest_of_random_programs(domain, targets)
+    pbest.refined[planned[:2]] = True     # another choice would now be made: the plan on disk wins
+    row = PBestSearch(domain, cfg, tmp_path).after_infer(3, pbest, targets)
+    assert row["rewrite_chunks_resumed"] == 1 and row["rewrite_shapes"] == 4
+    assert set(np.nonzero(pbest.refined)[0].tolist()) == set(planned.tolist())
