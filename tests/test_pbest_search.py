@@ -195,3 +195,15 @@ def test_a_killed_rewrite_resumes_with_the_same_plan_and_finished_chunks(tmp_pat
     row = PBestSearch(domain, cfg, tmp_path).after_infer(3, pbest, targets)
     assert row["rewrite_chunks_resumed"] == 1 and row["rewrite_shapes"] == 4
     assert set(np.nonzero(pbest.refined)[0].tolist()) == set(planned.tolist())
+
+
+def test_the_configured_time_limit_holds_in_the_pool():
+    from plad.rewrite.pool import refine_all
+
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 4)
+    programs = domain.sample(4, np.random.default_rng(9))
+    same, _, _ = refine_all("csg2d", programs, targets, {"time_limit": 0.0})   # no step starts after the limit
+    assert same == [list(p) for p in programs]
+    better, values, _ = refine_all("csg2d", programs, targets, {"rounds": 1})
+    assert better != same

@@ -60,13 +60,17 @@ def _run(job: tuple[str, str, dict[str, Any], float | None, Chunk]) -> ChunkResu
     start = time.perf_counter()
     if kind == "search":
         cfg = search_config(domain, **overrides)
-        # one batch per chunk, so that the time limit (per batch) is the chunk's
-        cfg.refine.batch, cfg.refine.time_limit = max(1, len(targets)), time_limit
+        # one batch per chunk, so that the time limit (per batch) is the chunk's; without one, the configuration's
+        cfg.refine.batch = max(1, len(targets))
+        if time_limit is not None:
+            cfg.refine.time_limit = time_limit
         result = search(domain, targets, cfg)
         before = np.full(len(targets), float(domain.metric.worst))
     else:
         cfg = refine_config(overrides)
-        cfg.batch, cfg.time_limit = max(1, len(targets)), time_limit
+        cfg.batch = max(1, len(targets))
+        if time_limit is not None:
+            cfg.time_limit = time_limit
         assert chunk.programs is not None
         before = Scorer(domain, targets).values(chunk.programs).numpy()
         result = refine(domain, chunk.programs, targets, cfg)
@@ -100,7 +104,8 @@ def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[
     """Search (``kind="search"``) or refine (``"refine"``) every chunk; yields results as chunks finish.
 
     ``overrides``: the search configuration's (:func:`plad.rewrite.search_config`) or the refine
-    configuration's; ``time_limit``: seconds per chunk (None: none).
+    configuration's; ``time_limit``: seconds per chunk (None: the configuration's ``time_limit``, which is
+    then per chunk too).
     """
     if kind not in KINDS:
         raise ValueError(f"chunk kind {kind!r}: expected one of {', '.join(KINDS)}")
