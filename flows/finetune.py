@@ -172,6 +172,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.serve:
         from prefect import serve
+        from prefect.settings import PREFECT_API_URL
+
+        if not PREFECT_API_URL.value():   # a temporary server would start, serve nothing and keep no schedule
+            parser.error("--serve needs a running Prefect server: start `prefect server start` and set "
+                         "PREFECT_API_URL=http://127.0.0.1:4200/api (README, Prefect)")
 
         serve(deployment(args.params, args.root, args.profile))
     else:

@@ -8,6 +8,7 @@
     plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
     plad search DOMAIN shape.npy --set insertions=8
     plad models
+    plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
 
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
@@ -18,10 +19,15 @@ Errors in the user's input are one line on stderr and a non-zero status
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+# The parser, --help, argument errors, `plad models` and `plad data check` import neither
+# torch, MLflow nor open3d (a test checks it): every command imports what it needs itself.
+if TYPE_CHECKING:
+    import numpy as np
 
 
 class UsageError(Exception):
@@ -36,6 +42,8 @@ def _fail(message: str, status: int) -> int:
 # ---- shape files -------------------------------------------------------------------
 def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
     """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
+    import numpy as np
+
     if not path.exists():
         raise UsageError(f"{path}: no such file")
     suffix = path.suffix.lower()
@@ -124,23 +132,32 @@ def cmd_score(args: argparse.Namespace) -> int:
     values = domain.metric(torch.from_numpy(pred), torch.from_numpy(target)).numpy()
     for v in values:
         print(f"{v:.6f}")
-    if len(values) > 1:
-        print(f"mean {values.mean():.6f}")
+    print(f"mean {values.mean():.6f}")   # for one shape too: scripts read the last line
     return 0
 
 
 def cmd_data(args: argparse.Namespace) -> int:
-    from plad.data import resolve_data_dir
-    from plad.datasets import cad
+    import importlib
+
+    from plad.data import DataError, resolve_data_dir
+    from plad.datasets import CHECKS, cad
 
     if args.action == "download":
         path = cad.download_cad(resolve_data_dir(args.data_dir))
         print(f"downloaded and verified {path}")
         return 0
-    for split in ("train", "val", "test"):
-        shapes = cad.load_cad(args.data_dir, split)
-        print(f"{cad.CAD.name} {split}: {len(shapes)} shapes {shapes.shape[1:]}")
-    return 0
+    # every target source the domains read (the CAD file; the PartNet programs of both 3D domains),
+    # each reported on its own, so that one missing file does not hide the state of the others
+    failed = 0
+    for target in CHECKS.values():
+        module, attr = target.split(":")
+        try:
+            for line in getattr(importlib.import_module(module), attr)(args.data_dir):
+                print(line)
+        except DataError as err:
+            failed += 1
+            print(f"plad: error: {err}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
@@ -271,16 +288,61 @@ def cmd_search(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from plad.tracking import registered_models, tracking_uri
+    """List the shipped and the registered models (the default one of each domain marked), or ship one."""
+    if args.models_command == "ship":
+        return _ship(args)
+    from plad.domains import domain_names
+    from plad.resolve import configured_store
+    from plad.shipped import ShipError, list_shipped, shipped_dir
 
-    rows = registered_models()
+    rows = []   # (domain, source, model, method, test)
+    try:
+        for m in list_shipped():
+            t = m.test
+            test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
+            rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test))
+    except ShipError as err:
+        raise UsageError(str(err)) from None
+    store = configured_store()
+    if store is not None:   # MLflow is imported only to read a configured store
+        from plad.tracking import registered_models
+
+        for r in registered_models():
+            domain = r["name"].removeprefix("plad-")
+            aliases = "".join(f"@{a}" for a in r["aliases"])
+            rows.append((domain if domain in domain_names() else r["name"], "registered",
+                         f"models:/{r['name']}/{r['version']} {aliases}".rstrip(), r["method"] or "-",
+                         r["test"] or "-"))
+    # the model `plad infer DOMAIN` uses without --model: the champion, else the shipped one
+    default = {}
+    for domain, source, model, *_ in rows:
+        if source == "registered" and "@champion" in model or source == "shipped" and domain not in default:
+            default[domain] = model
+    print(f"{'domain':<14} {'source':<10} {'method':<18} {'test metric':<36} model  (* = used by default)")
+    for domain, source, model, method, test in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
+        mark = "*" if default.get(domain) == model else " "
+        print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
     if not rows:
-        print(f"no registered models in {tracking_uri()}", file=sys.stderr)
-        return 0
-    print(f"{'model':<24} {'version':>7}  {'aliases':<12} {'method':<18} test metric")
-    for r in rows:
-        print(f"{r['name']:<24} {r['version']:>7}  {','.join(r['aliases']) or '-':<12} "
-              f"{r['method'] or '-':<18} {r['test'] or '-'}")
+        print("(no shipped or registered models)")
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    none = f"none ($MLFLOW_TRACKING_URI={env} does not exist yet)" if env else \
+        "none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)"
+    print(f"shipped models: {shipped_dir()}; MLflow store: {store or none}", file=sys.stderr)
+    return 0
+
+
+def _ship(args: argparse.Namespace) -> int:
+    from plad.shipped import ShipError, ship
+
+    try:
+        shipped = ship(args.domain, args.checkpoint, args.metrics, dest=args.dest, root=args.root,
+                       params=args.params, data_dir=args.data_dir)
+    except ShipError as err:
+        raise UsageError(str(err)) from None
+    git = shipped.info["provenance"]["git"]
+    print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes) and "
+          f"{shipped.checkpoint.with_name('model.json')}: test {shipped.test.get('metric')} "
+          f"{shipped.test.get('mean')}, git {git['revision']}{' (dirty)' if git['dirty'] else ''}")
     return 0
 
 
@@ -323,7 +385,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: .png/.jpg/... images or .npy; 3D: .obj/.ply/.off/.stl meshes or .npy voxels; "
                         "a folder means all supported files in it")
     p.add_argument("--model", default=None,
-                   help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion)")
+                   help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion of the "
+                        "MLflow store if one is configured and has it, else the model shipped with PLAD)")
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
     p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
     p.add_argument("--refine", action="store_true",
@@ -348,24 +411,42 @@ def build_parser() -> argparse.ArgumentParser:
                    help="search setting, e.g. insertions=5 or refine.rounds=1 (repeatable)")
     p.set_defaults(func=cmd_search)
 
-    p = sub.add_parser("models", help="list the registered models (MLflow registry) with their test metric")
-    p.set_defaults(func=cmd_models)
+    p = sub.add_parser("models", help="list the shipped and the registered models with their test metrics; "
+                                      "`plad models ship` packages a trained checkpoint as a shipped model",
+                       description="Without a subcommand: list the models shipped with PLAD and those registered "
+                                   "in the MLflow store (if one is configured), with their test metrics; * marks "
+                                   "the one `plad infer DOMAIN` uses without --model.")
+    p.set_defaults(func=cmd_models, models_command=None)
+    ms = p.add_subparsers(dest="models_command")
+    q = ms.add_parser("ship", help="package a trained checkpoint as the shipped model of its domain")
+    q.add_argument("domain", choices=domain_names())
+    q.add_argument("checkpoint", help="the trained checkpoint, e.g. runs/finetune/DOMAIN/lest_st/best.pt")
+    q.add_argument("--metrics", required=True,
+                   help="the metrics.json of its test evaluation, e.g. results/eval/lest_st/DOMAIN/metrics.json")
+    q.add_argument("--root", default=".", help="the layout root it was trained in (params, git, prepared data; "
+                                               "default: .)")
+    q.add_argument("--params", default="params.yaml", help="params file, relative to --root (default params.yaml)")
+    q.add_argument("--data-dir", default=None, help="data directory (for the data files' checksums)")
+    q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
+                                                "or $PLAD_SHIPPED_DIR)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from plad.data import DataError
-    from plad.grammar import ProgramError
-
     try:
         return args.func(args)
-    except ProgramError as err:
-        return _fail(f"invalid {args.domain} program: {err}", 2)
     except UsageError as err:
         return _fail(str(err), 2)
-    except DataError as err:
-        return _fail(str(err), 1)
+    except Exception as err:
+        # An error of a module the command never imported cannot be raised, so the error types
+        # are looked up among the loaded modules (importing plad.grammar here would import torch).
+        grammar, data = sys.modules.get("plad.grammar"), sys.modules.get("plad.data")
+        if grammar is not None and isinstance(err, grammar.ProgramError):
+            return _fail(f"invalid {args.domain} program: {err}", 2)
+        if data is not None and isinstance(err, data.DataError):
+            return _fail(str(err), 1)
+        raise
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 The model is a checkpoint file or an MLflow model URI (``models:/plad-<domain>@champion``,
 ``models:/plad-<domain>/3``, ``runs:/<id>/model``); without one, the registered
-champion of the domain. For every input shape the output folder gets:
+champion of a configured MLflow store, else the model shipped with the package
+(:mod:`plad.resolve`). For every input shape the output folder gets:
 
 * ``<stem>.txt``: the program text (the domain's text form);
 * ``<stem>.png``: input and reconstruction side by side (3D: three depth views each);
@@ -33,47 +34,20 @@ from plad.fsutil import atomic_write_text
 from plad.inputs import Item
 from plad.model import PLADNet
 from plad.pictures import save_comparison
+from plad.resolve import ModelError, resolve
 from plad.search import infer_programs
-from plad.tracking import download_checkpoint, is_model_uri
-
-
-class ModelError(Exception):
-    """The model cannot be found or used; one line."""
-
-
-def champion_uri(domain: str) -> str:
-    return f"models:/plad-{domain}@champion"
 
 
 def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple[PLADNet, str]:
-    """(model in eval mode, where it came from). Raises :class:`ModelError` with a one-line reason."""
-    ref = model or champion_uri(domain)
-    path = Path(ref)
-    if path.is_file():
-        try:
-            return load_model(path, device, expect_domain=domain)[0], str(path)
-        except CheckpointError as err:
-            raise ModelError(str(err)) from None
-    if is_model_uri(ref):
-        local = _download_checkpoint(ref)
-        try:
-            return load_model(local, device, expect_domain=domain)[0], ref
-        except CheckpointError as err:   # name the URI, not the temporary download
-            raise ModelError(f"{ref}: {str(err).removeprefix(f'{local}: ')}") from None
-    raise ModelError(f"{ref}: no such checkpoint file, and not an MLflow model URI (models:/NAME@ALIAS, "
-                     "models:/NAME/VERSION, runs:/RUN/model)")
-
-
-def _download_checkpoint(uri: str) -> Path:
-    """The checkpoint inside a logged PLAD model, downloaded locally; :class:`ModelError` when it cannot be had."""
+    """(model in eval mode, where it came from), chosen by :func:`plad.resolve.resolve`: ``model``, else the
+    configured store's champion, else the shipped model. Raises :class:`ModelError` with a one-line reason."""
+    choice = resolve(domain, model)
     try:
-        return download_checkpoint(uri)
-    except LookupError as err:   # not in the store
-        hint = " (train and register one with `dvc repro`, or pass --model a checkpoint file)" \
-            if uri.startswith("models:/") else ""
-        raise ModelError(f"{err}{hint}") from None
-    except ValueError as err:    # a logged model without a checkpoint
-        raise ModelError(str(err)) from None
+        net = load_model(choice.path, device, expect_domain=domain)[0]
+    except CheckpointError as err:   # name the URI, not the temporary download
+        raise ModelError(f"{choice.ref}: {str(err).removeprefix(f'{choice.path}: ')}"
+                         if choice.uri else str(err)) from None
+    return net, choice.ref + "".join(f" ({note})" for note in choice.notes)
 
 
 @dataclass

@@ -41,6 +41,7 @@ import logging
 import math
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -248,8 +249,9 @@ class Loop:
         self.limits = dist.broadcast(self.limits)   # budgets computed from each rank's clock: rank 0's rule
         if saved is not None:
             s = LoopState.from_dict(saved, self.unit_name)
-            log.info("resuming after %s %d (best %.6g at %s %d)", self.unit_name, s.unit, s.best,
-                     self.unit_name, s.best_unit)
+            if dist.is_main():   # the user sees that the run continues, and from where
+                print(f"resuming from {self.unit_name} {s.unit + 1} ({s.unit} finished, {s.seconds:.0f} s of "
+                      f"budget spent; best {s.best:.6g} at {self.unit_name} {s.best_unit})", file=sys.stderr)
         else:
             s = LoopState(self.unit_name, best=worst(self.objective))
             if start is not None:

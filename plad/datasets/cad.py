@@ -51,6 +51,25 @@ def download_cad(data_dir: str | os.PathLike | None = None, url: str | None = No
     return download_dataset(CAD, data_dir, url=url, timeout=timeout)
 
 
+def check(data_dir: str | os.PathLike | None = None) -> list[str]:
+    """Lines for ``plad data check``: the file verified (sha256) and the size of every split."""
+    from plad.data import find_dataset_file
+
+    lines = []
+    for split in CAD.splits:
+        shapes = load_cad(data_dir, split.name)
+        lines.append(f"{CAD.name} {split.name}: {len(shapes)} shapes {shapes.shape[1:]}")
+    return [f"{CAD.name} {find_dataset_file(CAD, data_dir)}: sha256 {CAD.sha256} verified"] + lines
+
+
+def checksums(data_dir: str | os.PathLike | None = None) -> dict[str, str]:
+    """{the CAD file: the sha256 of its (uncompressed) contents}, verified by reading it."""
+    from plad.data import find_dataset_file
+
+    load_cad(data_dir, "test")   # verifies the sha256 (raises DataError otherwise)
+    return {str(find_dataset_file(CAD, data_dir)): CAD.sha256}
+
+
 class CADTargets(TargetSource):
     """The CAD shapes as they are published: the prepared splits are the verified file's."""
 
@@ -63,4 +82,4 @@ class CADTargets(TargetSource):
 #: the target source of domains whose real shapes are the CAD drawings
 TARGETS = CADTargets()
 
-__all__ = ["CAD", "TARGETS", "CADTargets", "download_cad", "load_cad"]
+__all__ = ["CAD", "TARGETS", "CADTargets", "check", "checksums", "download_cad", "load_cad"]

@@ -1,13 +1,18 @@
 """Registry of domain plugins.
 
 Domains are imported lazily by name so that ``import plad`` and the CLI stay
-fast and a broken optional domain cannot break the others.
+fast and a broken optional domain cannot break the others. This module itself
+imports neither torch nor a plugin: ``domain_names()`` (what ``plad --help``
+and the CLI's argument checks need) costs nothing; :class:`Domain` (whose
+module imports torch) is loaded on first access.
 """
 from __future__ import annotations
 
 import importlib
+from typing import TYPE_CHECKING, Any
 
-from plad.domains.base import Domain
+if TYPE_CHECKING:
+    from plad.domains.base import Domain
 
 # name -> "module:attribute" of a Domain subclass
 _REGISTRY: dict[str, str] = {
@@ -43,6 +48,14 @@ def get_domain(name: str) -> Domain:
         module, attr = _REGISTRY[name].split(":")
         _INSTANCES[name] = getattr(importlib.import_module(module), attr)()
     return _INSTANCES[name]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "Domain":   # plad.domains.base imports torch: only when asked for
+        from plad.domains.base import Domain
+
+        return Domain
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = ["Domain", "domain_names", "get_domain", "plugin_module", "register"]

@@ -10,7 +10,8 @@ so ``import plad.tracking`` stays cheap):
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
   resolved to checkpoint files;
 * :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model
-  (:class:`PladPyfuncModel`), logged and loaded.
+  (:class:`PladPyfuncModel`), logged and loaded (:func:`plad.resolve.load_pyfunc` loads
+  the one ``plad infer`` would use: ``--model``, the configured store's champion, the shipped one).
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ from plad.tracking.runs import (
     metric_history,
     pipeline_tags,
 )
-from plad.tracking.serving import load_registered, pip_requirements, pyfunc_class
+from plad.tracking.serving import load_checkpoint_pyfunc, load_registered, pip_requirements, pyfunc_class
 from plad.tracking.store import DEFAULT_EXPERIMENT, find_experiment, tracking_uri
 
 
@@ -47,5 +48,5 @@ def __getattr__(name: str) -> Any:
 
 __all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun",
            "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri", "latest_finished_run",
-           "load_registered", "metric_history", "pip_requirements", "pipeline_tags", "registered_models",
-           "set_champion", "set_version_tags", "tracking_uri"]
+           "load_checkpoint_pyfunc", "load_registered", "metric_history", "pip_requirements", "pipeline_tags",
+           "registered_models", "set_champion", "set_version_tags", "tracking_uri"]

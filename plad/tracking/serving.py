@@ -63,6 +63,29 @@ def load_registered(uri: str) -> Any:
     return mlflow_module().pyfunc.load_model(uri)
 
 
+def load_checkpoint_pyfunc(checkpoint_path: str | os.PathLike, beam: int = 10) -> Any:
+    """A checkpoint file as the pyfunc model :func:`log_pyfunc` would log, without a store.
+
+    Saved as an MLflow model in a temporary folder (not under the working directory) and
+    loaded from there, so it behaves exactly as a logged one.
+    """
+    import tempfile
+
+    mlflow = mlflow_module()
+    from mlflow.models import ModelSignature
+    from mlflow.types import ParamSchema, ParamSpec
+
+    folder = Path(tempfile.mkdtemp(prefix="plad-pyfunc-")) / "model"
+    signature = ModelSignature(inputs=None, outputs=None,
+                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*input example.*")
+        mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
+                                 artifacts={"checkpoint": str(Path(checkpoint_path))},
+                                 pip_requirements=pip_requirements(), signature=signature)
+    return mlflow.pyfunc.load_model(str(folder))
+
+
 # -- the pyfunc wrapper ---------------------------------------------------------------------------
 def _stack_input(model_input: Any, shape: tuple[int, ...]) -> np.ndarray:
     """(N, *shape) bool numpy array from an ndarray, a list of arrays or a DataFrame."""

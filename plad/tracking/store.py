@@ -46,7 +46,8 @@ def client() -> Any:
     return mlflow_module().MlflowClient()
 
 
-def _sqlite_path(uri: str) -> Path | None:
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a SQLite store URI (absolute), else ``None``."""
     if not uri.startswith("sqlite:///"):
         return None
     rest = uri[len("sqlite:///"):].split("?", 1)[0]
@@ -58,7 +59,7 @@ def _sqlite_path(uri: str) -> Path | None:
 
 def _artifact_location(uri: str, experiment: str) -> str | None:
     """Artifacts of a SQLite store live beside the database, not under the cwd."""
-    db = _sqlite_path(uri)
+    db = sqlite_path(uri)
     if db is None:
         return None  # a server or another store decides
     safe = re.sub(r"[^\w.-]+", "_", experiment).strip("._") or "experiment"

@@ -40,6 +40,7 @@ import numpy as np
 
 from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir
 from plad.datasets.partnet.execute import run_text
+from plad.datasets.partnet.source import CATEGORIES, FOLDER, SOURCE_NAME, find_source, read_source
 from plad.datasets.partnet.voxels import RES, normalization, voxelize
 from plad.fsutil import atomic_write_text
 from plad.grammar import ProgramError
@@ -48,44 +49,11 @@ log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 PREPARED_NAME = "partnet_voxels.npz"
-SOURCE_NAME = "partnet_programs.tar.gz"
-FOLDER = "shapeassembly_partnet"
 REPORT_NAME = "partnet_voxels.json"
 FAILURES_NAME = "partnet_failures.log"
-CATEGORIES = ("chair", "table", "storage")
 CONVENTION = ("tight AABB of all cuboid corners; p_norm = (p - center) / scale; voxel (i,j,k) center "
               "((i+.5)/32-.5, (j+.5)/32-.5, (k+.5)/32-.5) indexed [x,y,z]; occupied iff "
               "|(c-p).u_a| <= max(|d_a|/2, 0.55/32) + 1e-6 for a = x, y, z for some cuboid")
-
-
-def read_source(tar_path: str | os.PathLike) -> tuple[dict[tuple[str, str], str], list[tuple[str, str, str]]]:
-    """Programs {(category, id): text} and the split assignment [(split, category, id)] of the tarball."""
-    programs: dict[tuple[str, str], str] = {}
-    official: dict[tuple[str, str], list[str]] = {}
-    with tarfile.open(tar_path, "r:gz") as tar:
-        for m in tar:
-            if not m.isfile():
-                continue
-            parts = Path(m.name).parts
-            if len(parts) == 3 and parts[0] == "programs" and parts[2].endswith(".txt"):
-                programs[(parts[1], parts[2][:-4])] = tar.extractfile(m).read().decode()
-            elif len(parts) == 3 and parts[0] == "splits" and parts[2] in ("train.txt", "val.txt"):
-                ids = tar.extractfile(m).read().decode().split()
-                official[(parts[1], parts[2][:-4])] = ids
-    missing = [f"splits/{c}/{s}.txt" for c in CATEGORIES for s in ("train", "val") if (c, s) not in official]
-    if missing:
-        raise ValueError(f"{tar_path}: missing split lists {', '.join(missing)}")
-
-    def key(cat_id: tuple[str, str]):
-        return CATEGORIES.index(cat_id[0]), int(cat_id[1]) if cat_id[1].isdigit() else cat_id[1]
-
-    assignment = [("train", c, i) for c, i in sorted(((c, i) for c in CATEGORIES for i in official[(c, "train")]),
-                                                     key=key)]
-    val = sorted(((c, i) for c in CATEGORIES for i in official[(c, "val")]), key=key)
-    assignment += [("val" if n % 2 == 0 else "test", c, i) for n, (c, i) in enumerate(val)]
-    order = {s: k for k, s in enumerate(SPLITS)}
-    assignment.sort(key=lambda r: (order[r[0]], key((r[1], r[2]))))
-    return programs, assignment
 
 
 def execute_records(programs: dict[tuple[str, str], str], assignment: list[tuple[str, str, str]]):
@@ -201,15 +169,6 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
                                      f"prepare stage (build_partnet_dataset), or point the data directory at "
                                      f"the folder holding {SOURCE_NAME}")
 
-
-def find_source(data_dir: str | os.PathLike | None) -> Path:
-    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder)."""
-    root = resolve_data_dir(data_dir)
-    for path in (root / FOLDER / SOURCE_NAME, root / SOURCE_NAME):
-        if path.is_file():
-            return path
-    raise DataError(root / FOLDER / SOURCE_NAME, "no such file: the PartNet ShapeAssembly programs are needed "
-                                                 "for the 3D target shapes (see the datasets README)")
 
 
 class PartNetTargets(TargetSource):

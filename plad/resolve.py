@@ -1,0 +1,133 @@
+"""Which model a command uses, in one place (``plad infer``, the pyfunc model of :func:`load_pyfunc`).
+
+In order:
+
+1. the model the user named (``--model``): a checkpoint file or an MLflow model URI;
+2. the registered champion ``models:/plad-<domain>@champion`` of the MLflow store, *if a
+   store is configured*: ``$MLFLOW_TRACKING_URI`` is set (for a SQLite URI: and its database
+   file exists), or ``./mlflow.db`` exists in the current directory (the store ``dvc repro``
+   writes there); and only if that store has the champion;
+3. the model shipped with the package (:mod:`plad.shipped`).
+
+A look-up never creates anything: an unconfigured store is not opened (opening a SQLite URI
+would create an empty database), and a champion is downloaded to a temporary folder.
+Only the checkpoint's location is resolved here; loading it (torch) is the caller's, or
+:func:`load_pyfunc`'s, which returns it as an MLflow pyfunc model. No pipeline stage imports
+this module (they name their models by the layout).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+from plad.shipped import ShipError, shipped_dir, shipped_model
+
+TRACKING_ENV = "MLFLOW_TRACKING_URI"
+
+
+class ModelError(Exception):
+    """The model cannot be found or used; one line."""
+
+
+def champion_uri(domain: str) -> str:
+    return f"models:/plad-{domain}@champion"
+
+
+def configured_store() -> str | None:
+    """The MLflow store to look for champions in, or ``None`` when none is configured (see the module doc)."""
+    from plad.tracking.store import sqlite_path, tracking_uri
+
+    uri = os.environ.get(TRACKING_ENV)
+    if uri:
+        # a local store that does not exist yet would be created by opening it: not configured
+        db = sqlite_path(uri)
+        if db is not None:
+            return uri if db.is_file() else None
+        if uri.startswith("file:") or "://" not in uri:
+            local = Path(urlparse(uri).path if uri.startswith("file:") else uri)
+            return uri if local.exists() else None
+        return uri
+    return tracking_uri() if (Path.cwd() / "mlflow.db").is_file() else None
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A resolved model: ``kind`` is ``file``, ``mlflow`` (a URI the user named), ``champion`` or ``shipped``."""
+
+    kind: str
+    #: what the user is shown: the path, the URI, or the shipped model's description
+    ref: str
+    #: the checkpoint file on this machine (a temporary download for ``mlflow`` and ``champion``)
+    path: Path
+    #: why earlier choices were passed over (e.g. the configured store has no champion)
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def uri(self) -> str | None:
+        """The MLflow model URI of a registered or logged model, else ``None``."""
+        return self.ref if self.kind in ("mlflow", "champion") else None
+
+
+def _download(uri: str) -> Path:
+    from plad.tracking.registry import download_checkpoint
+
+    try:
+        return download_checkpoint(uri)
+    except LookupError as err:   # not in the store
+        raise ModelError(str(err)) from None
+    except ValueError as err:    # a logged model without a checkpoint
+        raise ModelError(str(err)) from None
+
+
+def resolve(domain: str, model: str | None = None) -> Choice:
+    """The checkpoint ``domain``'s commands use; :class:`ModelError` (one line) when there is none."""
+    from plad.tracking.registry import is_model_uri
+
+    if model:
+        path = Path(model)
+        if path.is_file():
+            return Choice("file", str(path), path)
+        if is_model_uri(model):
+            return Choice("mlflow", model, _download(model))
+        raise ModelError(f"{model}: no such checkpoint file, and not an MLflow model URI (models:/NAME@ALIAS, "
+                         "models:/NAME/VERSION, runs:/RUN/model)")
+    notes = []
+    store = configured_store()
+    if store is not None:
+        uri = champion_uri(domain)
+        try:
+            return Choice("champion", uri, _download(uri))
+        except ModelError as err:
+            notes.append(f"no champion in the MLflow store ({err})")
+    try:
+        shipped = shipped_model(domain)
+        if shipped is not None:
+            shipped.verify()
+    except ShipError as err:
+        raise ModelError(str(err)) from None
+    if shipped is None:
+        where = "no MLflow store is configured" if store is None else notes[0]
+        raise ModelError(f"no {domain} model: {where}, and none is shipped in {shipped_dir()}; pass --model a "
+                         "checkpoint file, or train and register one with `dvc repro`")
+    return Choice("shipped", shipped.describe(), shipped.checkpoint, tuple(notes))
+
+
+def load_pyfunc(domain: str, model: str | None = None, beam: int = 10) -> Any:
+    """The pyfunc model of ``domain`` chosen as ``plad infer`` chooses (:func:`resolve`).
+
+    ``model`` (a checkpoint file or an MLflow model URI), else the champion of a configured
+    store, else the shipped model. A logged model is loaded as it was logged; a checkpoint file
+    (``model`` or the shipped one) becomes the same kind of pyfunc model
+    (:func:`plad.tracking.serving.load_checkpoint_pyfunc`), so every choice returns an object
+    with ``predict(shapes, params={"beam": k})``. Raises :class:`ModelError` (one line) when
+    there is no model.
+    """
+    from plad.tracking.serving import load_checkpoint_pyfunc, load_registered
+
+    choice = resolve(domain, model)
+    if choice.uri is not None:
+        return load_registered(choice.uri)
+    return load_checkpoint_pyfunc(choice.path, beam)

@@ -1,0 +1,190 @@
+"""The trained models shipped with the package: one small checkpoint per domain and its sidecar.
+
+Layout of the folder (this package's directory, or ``$PLAD_SHIPPED_DIR``)::
+
+    <domain>/model.pt     a checkpoint (plad.checkpoint: config, token table, weights; no training state)
+    <domain>/model.json   the sidecar: the checkpoint's sha256 and size, its config and token table,
+                          its test metric values, and provenance (params, git revision, data checksums)
+
+:func:`ship` writes both from a trained checkpoint and the ``metrics.json`` of its test
+evaluation (``plad models ship``); :func:`shipped_model` and :func:`list_shipped` read them
+back. Reading a sidecar needs neither torch nor MLflow (``plad models`` lists the shipped
+models without them); :func:`ship` loads the checkpoint and so imports torch.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+#: overrides the folder of shipped models (tests; a site that keeps its own)
+SHIPPED_ENV = "PLAD_SHIPPED_DIR"
+CHECKPOINT = "model.pt"
+SIDECAR = "model.json"
+FORMAT = "plad-shipped-1"
+
+
+class ShipError(Exception):
+    """A model cannot be shipped or a shipped one is unusable; one line naming the file."""
+
+
+def shipped_dir() -> Path:
+    """The folder of shipped models: ``$PLAD_SHIPPED_DIR``, else this package's directory."""
+    env = os.environ.get(SHIPPED_ENV)
+    return Path(env) if env else Path(__file__).resolve().parent
+
+
+@dataclass(frozen=True)
+class ShippedModel:
+    domain: str
+    checkpoint: Path
+    info: dict[str, Any]
+
+    @property
+    def test(self) -> dict[str, Any]:
+        """The test metric: ``{"metric", "higher_is_better", "mean", "n", "beam", ...}``."""
+        return self.info.get("metrics", {})
+
+    def describe(self) -> str:
+        m = self.test
+        return (f"shipped {self.domain} model ({self.info.get('method', '?')}, test {m.get('metric', '?')} "
+                f"{m.get('mean', '?')}) {self.checkpoint}")
+
+    def verify(self) -> None:
+        """Raise :class:`ShipError` when the checkpoint is not the file the sidecar describes."""
+        want = self.info.get("checkpoint", {})
+        got = sha256_file(self.checkpoint)
+        if got != want.get("sha256"):
+            raise ShipError(f"{self.checkpoint}: sha256 {got[:12]}... differs from its sidecar's "
+                            f"{str(want.get('sha256'))[:12]}... (a damaged or replaced shipped model)")
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def shipped_model(domain: str, folder: Path | None = None) -> ShippedModel | None:
+    """The shipped model of ``domain``, or ``None`` when none is shipped. A sidecar that is not
+    readable JSON is a :class:`ShipError`."""
+    base = (folder or shipped_dir()) / domain
+    ckpt, side = base / CHECKPOINT, base / SIDECAR
+    if not (ckpt.is_file() and side.is_file()):
+        return None
+    try:
+        info = json.loads(side.read_text())
+    except (OSError, ValueError) as err:
+        raise ShipError(f"{side}: not a readable sidecar ({err})") from None
+    if not isinstance(info, dict) or info.get("format") != FORMAT:
+        raise ShipError(f"{side}: not a shipped-model sidecar (expected format {FORMAT})")
+    return ShippedModel(domain, ckpt, info)
+
+
+def list_shipped(folder: Path | None = None) -> list[ShippedModel]:
+    """Every shipped model, by domain name."""
+    base = folder or shipped_dir()
+    if not base.is_dir():
+        return []
+    found = (shipped_model(d.name, base) for d in sorted(base.iterdir()) if d.is_dir())
+    return [m for m in found if m is not None]
+
+
+def _git(root: Path, *args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def _provenance(domain: str, root: Path, params_path: Path, data_dir: str | None) -> dict[str, Any]:
+    """Params of the domain (every per-domain section, resolved with the profile), git revision, data checksums."""
+    import importlib
+
+    from plad.config import PER_DOMAIN, load_params
+    from plad.datasets import FILES
+    from plad.domains import get_domain
+    from plad.layout import Layout
+
+    params = load_params(params_path)
+    sections = {name: params[name][domain] for name in sorted(PER_DOMAIN)
+                if isinstance(params.get(name), dict) and domain in params[name]}
+    source = get_domain(domain).targets.name
+    files: dict[str, str] = {}
+    if source in FILES:
+        module, attr = FILES[source].split(":")
+        files = getattr(importlib.import_module(module), attr)(data_dir)
+    prepared = Layout(root).prepared(domain)
+    data = {"source": source, "files": files}
+    if prepared.is_file():
+        data["prepared"] = {str(prepared.relative_to(root)): sha256_file(prepared)}
+    status = _git(root, "status", "--porcelain", "--untracked-files=no")
+    return {"params_file": str(params_path), "profile": params.get("profile"), "params": sections,
+            "git": {"revision": _git(root, "rev-parse", "HEAD"), "dirty": bool(status) if status is not None else None},
+            "data": data}
+
+
+def _test_metrics(metrics_path: Path, domain: str, checkpoint: Path) -> tuple[dict[str, Any], str | None]:
+    """(the test metric record, the method) of an evaluation's ``metrics.json``, checked against the checkpoint."""
+    try:
+        record = json.loads(metrics_path.read_text())
+    except (OSError, ValueError) as err:
+        raise ShipError(f"{metrics_path}: not a readable metrics file ({err})") from None
+    test = record.get("test") if isinstance(record, dict) else None
+    if not isinstance(test, dict) or "mean" not in test:
+        raise ShipError(f"{metrics_path}: no test metric (expected the metrics.json of an evaluation)")
+    if record.get("domain") != domain:
+        raise ShipError(f"{metrics_path}: metrics of a {record.get('domain')} model, not a {domain} one")
+    described = record.get("checkpoint")
+    if described and not checkpoint.resolve().as_posix().endswith(Path(described).as_posix()):
+        raise ShipError(f"{metrics_path}: the metrics of {described}, not of {checkpoint}")
+    keep = {k: record[k] for k in ("metric", "higher_is_better", "beam") if k in record}
+    return {**keep, **test}, record.get("method")
+
+
+def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike, *,
+         dest: str | os.PathLike | None = None, root: str | os.PathLike = ".",
+         params: str | os.PathLike = "params.yaml", data_dir: str | None = None) -> ShippedModel:
+    """Package a trained checkpoint as the shipped model of ``domain`` (in ``dest``, default :func:`shipped_dir`).
+
+    The checkpoint is loaded and saved again without its training state (small); the sidecar
+    records its sha256, config, token table, the test metrics of ``metrics`` (an evaluation's
+    ``metrics.json`` of this very checkpoint) and the provenance read under ``root`` (the layout
+    root the model was trained in): ``params`` with its profile, the git revision, the data files'
+    checksums. Both files are written atomically; an earlier shipped model is replaced.
+    """
+    from plad.checkpoint import CheckpointError, load_model, save_checkpoint
+    from plad.domains import get_domain
+    from plad.fsutil import atomic_write_text
+
+    checkpoint, metrics, root = Path(checkpoint), Path(metrics), Path(root)
+    try:
+        model, got = load_model(checkpoint, "cpu", expect_domain=domain)
+    except CheckpointError as err:
+        raise ShipError(str(err)) from None
+    test, method = _test_metrics(metrics, domain, checkpoint)
+    params_path = params if Path(params).is_absolute() else root / params
+    if not Path(params_path).is_file():
+        raise ShipError(f"{params_path}: no such params file (the provenance of the model)")
+    provenance = _provenance(domain, root, Path(params_path), data_dir)
+    folder = Path(dest or shipped_dir()) / domain
+    folder.mkdir(parents=True, exist_ok=True)
+    names = get_domain(domain).tokens.names
+    out = save_checkpoint(folder / CHECKPOINT, model, domain, names)
+    info = {
+        "format": FORMAT, "domain": domain, "method": method,
+        "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(out), "bytes": out.stat().st_size,
+                       "shipped_from": str(checkpoint)},
+        "config": model.cfg.to_dict(), "tokens": list(names),
+        "metrics": test, "metrics_file": str(metrics),
+        "provenance": provenance,
+    }
+    atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")
+    return ShippedModel(domain, out, info)

@@ -1,0 +1,323 @@
+"""dvc.yaml is honest: every stage depends on the code it runs, the params it reads, and the layout's paths.
+
+The stages are read with DVC's own parser (templates expanded for every
+domain and method). A stage's code is the import closure of its command's
+module: every ``import``/``from`` anywhere in a file of ``plad/`` or
+``flows/`` (inside functions too), resolved to files, plus the plugin
+module of each domain it loads through the registry (its own domain, or
+every domain of ``domains``) with that module's closure. A code dependency
+that no expansion of its stage needs is an error too (editing
+``plad/report.py`` must not rerun pretraining); one template serves every
+domain, so a per-domain stage depends on the shared code of every domain's
+plugin (DVC cannot template a list per domain).
+"""
+from __future__ import annotations
+
+import shlex
+import shutil
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import pytest
+import yaml
+
+from plad.config import INJECTED, PER_DOMAIN, load_params
+from plad.layout import (
+    AMORTIZATION_PLOT,
+    AMORTIZATION_TABLE,
+    BEST,
+    CONVERGENCE,
+    GRID,
+    HISTORY,
+    LAST,
+    METRICS,
+    REPORT,
+    SEARCH,
+    SP,
+    SUMMARY,
+    TABLE,
+    Layout,
+    eval_key,
+    programs_csv,
+)
+from plad.report import amortization_keys
+from tests.conftest import REPO_ROOT
+from tests.plad.domains.test_plugin_boundary import imported_modules
+
+REPO = REPO_ROOT
+PACKAGES = ("plad", "flows")   # where the project's code lives; anything else is a third-party import
+
+pytestmark = pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed")
+
+
+# -- the import closure -----------------------------------------------------------------------------
+def module_file(name: str) -> Path | None:
+    path = REPO / Path(*name.split("."))
+    for candidate in (path / "__init__.py", path.with_suffix(".py")):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@cache
+def closure(module: str) -> frozenset[str]:
+    """Repository-relative files of ``module`` and everything it imports, transitively (packages' __init__ too)."""
+    seen: dict[str, Path] = {}
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name.split(".")[0] not in PACKAGES:
+            continue
+        parts = name.split(".")
+        for prefix in (".".join(parts[:i]) for i in range(1, len(parts) + 1)):   # importing a.b runs a/__init__
+            path = module_file(prefix)
+            if path is None or prefix in seen:
+                continue
+            seen[prefix] = path
+            package = prefix if path.name == "__init__.py" else prefix.rpartition(".")[0]
+            todo.extend(imported_modules(path.read_text(), package))   # every import, at any depth
+    return frozenset(str(p.relative_to(REPO)) for p in seen.values())
+
+
+def code_files() -> set[str]:
+    return {str(p.relative_to(REPO)) for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")
+            if "__pycache__" not in p.parts}
+
+
+# -- the stages as DVC sees them ---------------------------------------------------------------------
+@dataclass
+class Stage:
+    name: str
+    cmd: str
+    deps: list[str] = field(default_factory=list)
+    params: dict[str, list[str]] = field(default_factory=dict)   # params file -> keys ([]: the whole file)
+    outs: list[str] = field(default_factory=list)
+
+    @property
+    def group(self) -> str:
+        return self.name.split("@")[0]
+
+    @property
+    def argv(self) -> list[str]:
+        return shlex.split(self.cmd)
+
+    def option(self, name: str, default: str | None = None) -> str | None:
+        argv = self.argv
+        return argv[argv.index(name) + 1] if name in argv else default
+
+    @property
+    def sets(self) -> dict[str, str]:
+        argv = self.argv
+        return dict(argv[i + 1].split("=", 1) for i, a in enumerate(argv) if a == "--set")
+
+    @property
+    def module(self) -> str:
+        assert self.argv[:3] == ["python", "-m", self.argv[2]], self.cmd
+        return self.argv[2]
+
+    @property
+    def section(self) -> str:
+        return self.option("--section", self.module.rsplit(".", 1)[1])
+
+
+@cache
+def stages() -> tuple[Stage, ...]:
+    from dvc.dependency.param import ParamsDependency
+    from dvc.repo import Repo
+
+    out = []
+    with Repo(str(REPO)) as repo:
+        for st in repo.index.stages:
+            stage = Stage(st.addressing, st.cmd)
+            for dep in st.deps:
+                if isinstance(dep, ParamsDependency):
+                    stage.params[dep.def_path] = list(dep.params)
+                else:
+                    stage.deps.append(dep.def_path)
+            stage.outs = [o.def_path for o in st.outs]   # outs, metrics and plots
+            out.append(stage)
+    return tuple(out)
+
+
+@cache
+def params():
+    return load_params(REPO / "params.yaml")
+
+
+def domains_of(stage: Stage) -> list[str]:
+    """The domains whose plugins the stage loads: its own, or every domain it is configured with."""
+    section = params()
+    for part in stage.section.split("."):
+        section = section[part]
+    return [section["domain"]] if "domain" in section else list(section["domains"])
+
+
+def code_of(stage: Stage) -> frozenset[str]:
+    from plad.domains import plugin_module
+
+    files = set(closure(stage.module))
+    for domain in domains_of(stage):
+        files |= closure(plugin_module(domain))
+    return frozenset(files)
+
+
+@cache
+def shared_plugin_code() -> frozenset[str]:
+    """What the registered plugins import outside their own packages: a per-domain template depends on all of it."""
+    from plad.domains import domain_names, plugin_module
+
+    files = set()
+    for name in domain_names():
+        own = str(module_file(plugin_module(name)).parent.relative_to(REPO))
+        files |= {f for f in closure(plugin_module(name)) if not covers(own, f)}
+    return frozenset(files)
+
+
+def is_code(path: str) -> bool:
+    return path.split("/")[0] in PACKAGES
+
+
+def covers(dep: str, path: str) -> bool:
+    return path == dep or path.startswith(dep.rstrip("/") + "/")
+
+
+def test_the_pipeline_has_every_stage_of_every_domain_and_method():
+    p = params()
+    names = {s.name for s in stages()}
+    assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate", "search_only",
+                                                                  "evaluate_refined") for d in p["domains"]} | \
+        {f"{g}@{d}-{m}" for g in ("finetune", "evaluate_finetuned") for d in p["domains"] for m in p["methods"]} | \
+        {f"evaluate_beams@{d}-{b}" for d in p["domains"] for b in p["beams"]}
+
+
+def test_every_stage_depends_on_the_code_it_imports_and_no_other():
+    files = code_files()
+    needed_by_group: dict[str, set[str]] = {}
+    for stage in stages():
+        needed = code_of(stage)
+        needed_by_group.setdefault(stage.group, set()).update(needed)
+        deps = [d for d in stage.deps if is_code(d)]
+        stale = [d for d in deps if not (REPO / d).exists()]
+        assert not stale, f"{stage.name}: dvc.yaml names code that does not exist: {stale}"
+        missing = sorted(f for f in needed if not any(covers(d, f) for d in deps))
+        assert not missing, f"{stage.name} imports files dvc.yaml does not list as its deps: {missing}"
+    for stage in stages():
+        allowed = code_of(stage) | shared_plugin_code()
+        for dep in (d for d in stage.deps if is_code(d)):
+            under = {f for f in files if covers(dep, f)}
+            assert under & needed_by_group[stage.group], f"{stage.name}: no {stage.group} stage imports {dep}"
+            unneeded = sorted(under - allowed)
+            assert not unneeded, f"{stage.name}: dep {dep} covers code the stage does not import: {unneeded}"
+
+
+def test_editing_the_report_code_reruns_only_the_report():
+    users = {s.name for s in stages() if any(covers(d, "plad/report.py") for d in s.deps)}
+    assert users == {"report"}
+
+
+def read_keys(stage: Stage) -> set[str]:
+    """Dotted leaf keys of params.yaml the stage's config is built from (its method's entry only)."""
+    raw = yaml.safe_load((REPO / "params.yaml").read_text())
+
+    def leaves(node, prefix):
+        if isinstance(node, dict) and node:
+            for k, v in node.items():
+                yield from leaves(v, f"{prefix}.{k}")
+        else:
+            yield prefix
+
+    top, _, domain = stage.section.partition(".")
+    if top in PER_DOMAIN:
+        keys = set(leaves(raw[top].get("base"), f"{top}.base")) | set(leaves(raw[top][domain], f"{top}.{domain}"))
+    else:
+        keys = set(leaves(raw[top], top))
+    keys |= {k for k in INJECTED.get(top, ()) if k in raw}
+    if top == "finetune":   # a fine-tuning stage reads the entry of its method only
+        method = stage.sets["key"]
+        keys = {k for k in keys if ".methods." not in k or k.split(".methods.")[1].split(".")[0] == method}
+    return keys
+
+
+def test_every_stage_depends_on_the_params_it_reads_and_on_no_key_it_overrides():
+    raw = yaml.safe_load((REPO / "params.yaml").read_text())
+    profile_file = f"profiles/{raw['profile']}.yaml"
+    for stage in stages():
+        declared = stage.params.get("params.yaml", [])
+        reads = read_keys(stage)
+        missing = sorted(k for k in reads if not any(covers(d.replace(".", "/"), k.replace(".", "/"))
+                                                     for d in declared))
+        assert not missing, f"{stage.name} reads params dvc.yaml does not declare: {missing}"
+        for key in declared:
+            assert any(covers(key.replace(".", "/"), k.replace(".", "/")) for k in reads) or \
+                key == stage.section, f"{stage.name}: declares {key}, which it does not read"
+        top, _, domain = stage.section.partition(".")
+        for key in stage.sets:   # a key the command sets is not read from params.yaml
+            assert not any(k.endswith(f".{key}") or f".{key}." in k for k in reads), \
+                f"{stage.name} sets {key} on its command line and reads it from params.yaml"
+        assert stage.params.get(profile_file) == [], f"{stage.name} must depend on the whole {profile_file}"
+        if stage.group == "finetune":   # editing one method reruns only its stages
+            others = [k for k in raw["finetune"]["base"]["methods"] if k != stage.sets["key"]]
+            assert not any(covers(d.replace(".", "/"), f"finetune/base/methods/{m}")
+                           for d in declared for m in others), f"{stage.name} depends on the entries of other methods"
+
+
+# -- the layout ----------------------------------------------------------------------------------------
+def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
+    """(inputs, outputs) of a stage as the layout places them."""
+    from plad.domains import get_domain
+
+    p = params()
+    rel = lambda paths: {str(x) for x in paths}  # noqa: E731
+    domain = stage.section.partition(".")[2]
+    method = stage.sets.get("method", stage.sets.get("key", SP))
+    if stage.group == "prepare":
+        sources = {get_domain(d).targets for d in p["domains"]}
+        return set(), rel([*(layout.prepared(d) for d in p["domains"]),
+                           *(layout.prepared_summary(d) for d in p["domains"]),
+                           *(layout.prepared_dir / f for s in sources for f in s.files)])
+    if stage.group == "synthesize":
+        return set(), rel([layout.synthetic(domain), layout.synthetic_summary(domain)])
+    if stage.group == "pretrain":
+        out = layout.pretrain_dir(domain)
+        return rel([layout.synthetic(domain)]), rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY])
+    if stage.group == "search_only":
+        out = layout.eval_dir(SEARCH, domain)
+        splits = p["search_only"][domain]["splits"]
+        return rel([layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / METRICS])
+    if stage.group in ("evaluate", "evaluate_finetuned", "evaluate_refined", "evaluate_beams"):
+        sweep = stage.sets.get("sweep_beam")
+        out = layout.eval_dir(eval_key(method, int(sweep) if sweep else None, stage.sets.get("refine") == "true"),
+                              domain)
+        splits = p["evaluate"][domain]["splits"]
+        model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
+        return rel([model, layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / GRID,
+                                                           out / METRICS])
+    if stage.group == "finetune":
+        return rel([layout.model(domain), layout.prepared(domain)]), \
+            rel([layout.finetune_dir(domain, method), layout.finetune_summary(domain, method)])
+    if stage.group == "report":
+        rows = [*p["report"]["methods"], *p["report"]["per_round"].values()]
+        ins = [layout.eval_dir(m, d) / METRICS for m in rows for d in p["domains"]]
+        timed = [*p["report"]["beyond"], *(k for k, _ in amortization_keys(p["report"]["amortization"]["method"],
+                                                                             p["beams"]))]
+        ins += [layout.eval_dir(k, d) / METRICS for k in timed for d in p["domains"]]
+        ins += [layout.finetune_dir(d, m) for m in rows if m != SP for d in p["domains"]]
+        ins += [layout.finetune_summary(d, m) for m in rows if m != SP for d in p["domains"]]
+        ins += [layout.model(d) for d in p["domains"]]   # the champion may be the pretrained model
+        out = layout.results_dir
+        return rel(ins), rel([out / TABLE, out / CONVERGENCE, out / REPORT, out / AMORTIZATION_TABLE,
+                              out / AMORTIZATION_PLOT])
+    raise AssertionError(f"no layout known for stage {stage.name}")
+
+
+def test_dvc_paths_are_the_layouts():
+    layout = Layout(Path(""))   # relative paths, as dvc.yaml writes them
+    for stage in stages():
+        inputs, outputs = expected_files(stage, layout)
+        assert set(stage.outs) == outputs, f"{stage.name}: dvc.yaml outs {sorted(stage.outs)} != layout {outputs}"
+        data = [d for d in stage.deps if not is_code(d)]
+        uncovered = sorted(f for f in inputs if not any(covers(d, f) for d in data))
+        assert not uncovered, f"{stage.name} reads {uncovered}, not among its dvc.yaml deps {data}"
+        for dep in data:
+            assert any(covers(dep, f) for f in inputs), f"{stage.name}: dep {dep} is none of its inputs {inputs}"

@@ -1,0 +1,180 @@
+"""The whole pipeline with the smoke profile, run as the README says, in a temporary copy of the project.
+
+The copy is a git repository of the project's files as they are in the working tree; the smoke profile
+runs there with ``dvc exp run --temp -S profile=smoke`` (the README's command), which must leave every
+committed file (the ``cpu`` results, ``dvc.lock``, ``params.yaml``) as it was. The experiment is then
+applied to the copy's workspace so that the tests below can read its outputs.
+"""
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from tests.conftest import REPO_ROOT
+
+pytestmark = [pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed"), pytest.mark.pipeline,
+              pytest.mark.slow_first]
+
+
+def run(cmd, cwd, env):
+    res = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, f"{' '.join(cmd)} failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
+    return res
+
+
+def project_files() -> list[str]:
+    """The repository's files: committed or new, not ignored, present in the working tree."""
+    out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO_ROOT,
+                         capture_output=True, text=True, check=True).stdout
+    return sorted(f for f in set(out.split("\0")) if f and (REPO_ROOT / f).is_file())
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory, datasets_dir):
+    work = tmp_path_factory.mktemp("pipeline")
+    for name in project_files():
+        (work / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO_ROOT / name, work / name)
+    env = {**os.environ, "PLAD_DATA_DIR": str(datasets_dir), "DVC_NO_ANALYTICS": "1",
+           "MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}", "GIT_AUTHOR_NAME": "t",
+           "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
+    env.pop("PLAD_PIPELINE_ID", None)
+    run(["git", "init", "-q"], work, env)
+    run(["git", "add", "-A"], work, env)
+    run(["git", "commit", "-q", "-m", "the project"], work, env)
+    res = run(["dvc", "exp", "run", "--temp", "-S", "profile=smoke", "-n", "smoke"], work, env)
+    status = run(["git", "status", "--porcelain"], work, env).stdout
+    run(["dvc", "exp", "apply", "smoke"], work, env)
+    return work, env, res, status
+
+
+def test_smoke_profile_leaves_the_committed_files_alone(smoke_run):
+    *_, status = smoke_run
+    assert status == ""
+
+
+def test_smoke_repro_writes_metrics_and_grid(smoke_run):
+    work, *_ = smoke_run
+    metrics = json.loads((work / "results" / "eval" / "sp" / "csg2d" / "metrics.json").read_text())
+    assert metrics["method"] == "sp" and metrics["metric"] == "chamfer" and metrics["beam"] == 10
+    assert metrics["test"]["n"] == 20 and 0 <= metrics["test"]["mean"] <= 16
+    grid = work / "results" / "eval" / "sp" / "csg2d" / "grid.png"
+    assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    lines = (work / "results" / "eval" / "sp" / "csg2d" / "test_programs.csv").read_text().splitlines()
+    assert len(lines) == 21 and lines[0] == "index,chamfer,program"
+    summary = json.loads((work / "runs" / "pretrain" / "csg2d" / "summary.json").read_text())
+    assert summary["units"] == 2 and summary["unit_name"] == "epoch"
+    for domain in ("csg3d", "shapeassembly"):
+        sp = json.loads((work / "results" / "eval" / "sp" / domain / "metrics.json").read_text())
+        assert sp["metric"] == "iou" and sp["higher_is_better"] and sp["test"]["n"] == 10
+        assert 0 <= sp["test"]["mean"] <= 1
+    built = json.loads((work / "data" / "prepared" / "partnet_voxels.json").read_text())
+    assert built["listed"] == {"train": 20, "val": 20, "test": 20} and built["failures"] == []
+
+
+def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
+    work, env, *_ = smoke_run
+    import mlflow
+
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    runs = mlflow.search_runs(experiment_names=["plad"])
+    stages = set(runs["tags.plad.stage"])
+    assert {"pretrain", "evaluate", "finetune", "report"} <= stages
+    assert (runs["status"] == "FINISHED").all()
+    assert runs["tags.plad.pipeline"].nunique() == 1  # one repro, one group
+    finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
+    for domain in DOMAINS:
+        mine = finetuned[finetuned["tags.plad.domain"] == domain]
+        assert set(mine["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round", "lest_st_ws_search"}
+    finetuned = finetuned[finetuned["tags.plad.domain"] == "csg2d"]
+    rounds = runs[runs["tags.mlflow.parentRunId"].isin(finetuned["run_id"])]
+    ws = finetuned[finetuned["tags.plad.method"] == "lest_st_ws"].iloc[0]
+    ws_rounds = rounds[rounds["tags.mlflow.parentRunId"] == ws["run_id"]]
+    assert sorted(ws_rounds["tags.plad.round"]) == ["1", "2"]       # one nested run per round
+    assert ws_rounds["metrics.pbest_mean"].notna().all() and ws_rounds["metrics.pbest_improved"].notna().all()
+    pre = runs[(runs["tags.plad.stage"] == "pretrain") & (runs["tags.plad.domain"] == "csg2d")].iloc[0]
+    assert pre["params.train.batch_size"] == "32"
+    client = mlflow.tracking.MlflowClient()
+    history = client.get_metric_history(pre["run_id"], "val_loss")
+    assert len(history) == 2  # one value per epoch
+    assert [a.path for a in client.list_artifacts(pre["run_id"], "checkpoint")] == ["checkpoint/best.pt"]
+    model = mlflow.pyfunc.load_model(f"runs:/{pre['run_id']}/model")  # the logged model loads and infers
+    out = model.predict(np.zeros((2, 64, 64), dtype=bool) | (np.arange(64) > 31)[None, None, :])
+    assert len(out) == 2 and "program" in out.columns
+
+
+def test_smoke_repro_is_up_to_date_afterwards(smoke_run):
+    work, env, *_ = smoke_run
+    res = run(["dvc", "status"], work, env)
+    assert "changed" not in res.stdout
+
+
+METHODS = ["rl", "ws", "st", "lest", "lest_st", "lest_st_ws"]
+DOMAINS = ["csg2d", "csg3d", "shapeassembly"]
+
+
+def test_smoke_repro_writes_the_whole_table(smoke_run):
+    work, *_ = smoke_run
+    table = (work / "results" / "table.md").read_text()
+    main = table.split("## Fine-tuning runs")[0]
+    rows = [line.split("|")[1].strip() for line in main.splitlines() if line.startswith("| ") and "---" not in line]
+    assert rows == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS"]
+    assert "2D CSG: chamfer" in main and "3D CSG: iou x100" in main and "ShapeAssembly: iou x100" in main
+    assert "| LEST+ST | " in table.split("all-time vs per-round")[1]
+    lines = {line.split("|")[1].strip(): line for line in main.splitlines() if line.startswith("| ")}
+    for domain, n, scale, digits in [("csg2d", 20, 1, 3), ("csg3d", 10, 100, 1), ("shapeassembly", 10, 100, 1)]:
+        for key in ["sp", *METHODS, "lest_st_per_round"]:
+            m = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())
+            assert m["method"] == key and m["test"]["n"] == n
+            if key != "lest_st_per_round":
+                label = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
+                         "lest_st_ws": "LEST+ST+WS"}[key]
+                assert f"| {m['test']['mean'] * scale:.{digits}f} |" in lines[label]
+        for key in METHODS:
+            state = json.loads((work / "runs" / "finetune" / domain / key / "state.json").read_text())
+            assert len(state["history"]) == 3  # start + 2 rounds (RL: 2 epochs)
+    assert (work / "results" / "convergence.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
+    work, env, *_ = smoke_run
+    out = tmp_path / "from_mlflow"   # a root without any of the pipeline's files
+    run(["python", "-m", "plad.stages.report", "--params", "params.yaml", "--set", "source=mlflow",
+         "--set", "register=false", "--root", str(out)], work, env)
+    assert (out / "results" / "table.md").read_text() == (work / "results" / "table.md").read_text()
+
+
+def test_report_registers_the_champion(smoke_run):
+    work, env, *_ = smoke_run
+    import mlflow
+
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    report = json.loads((work / "results" / "report.json").read_text())
+    for domain in DOMAINS:
+        champ = report["domains"][domain]["champion"]
+        version = mlflow.MlflowClient().get_model_version_by_alias(f"plad-{domain}", "champion")
+        assert str(version.version) == champ["version"] and version.tags["plad.method"] == champ["method"]
+
+
+def test_smoke_repro_writes_the_rows_beyond_the_paper(smoke_run):
+    work, *_ = smoke_run
+    ev = work / "results" / "eval"
+    for domain, n, higher in [("csg2d", 20, False), ("csg3d", 10, True), ("shapeassembly", 10, True)]:
+        search = json.loads((ev / "search" / domain / "metrics.json").read_text())
+        assert search["test"]["n"] == n and search["test"]["seconds_per_shape"] > 0
+        refined = json.loads((ev / "lest_st_ws_search_refined" / domain / "metrics.json").read_text())["test"]
+        beam10 = json.loads((ev / "lest_st_ws_search_beam10" / domain / "metrics.json").read_text())["test"]
+        assert refined["network_mean"] == beam10["mean"]        # the same model, beam and shapes
+        assert (refined["mean"] >= refined["network_mean"]) if higher else (refined["mean"] <= refined["network_mean"])
+        for beam in (1, 5):
+            assert json.loads((ev / f"lest_st_ws_search_beam{beam}" / domain / "metrics.json").read_text())["beam"] \
+                == beam
+        state = json.loads((work / "runs" / "finetune" / domain / "lest_st_ws_search" / "state.json").read_text())
+        assert state["history"][1]["seed_shapes"] > 0 and state["history"][1]["rewrite_shapes"] > 0
+    assert "Not computed" not in (work / "results" / "amortization.md").read_text()
+    table = (work / "results" / "table.md").read_text()
+    assert "| search, no network |" in table and "Not computed" not in table
+    assert (work / "results" / "amortization.png").read_bytes()[:4] == b"\x89PNG"
