@@ -178,7 +178,12 @@ def cmd_infer(args: argparse.Namespace) -> int:
     except ModelError as err:
         raise UsageError(str(err)) from None
     print(f"model: {source}", file=sys.stderr)
-    results = infer_items(model, domain, items, args.beam, args.out)
+    refine = None
+    if args.refine:
+        from plad.rewrite import RefineConfig
+
+        refine = RefineConfig()
+    results = infer_items(model, domain, items, args.beam, args.out, refine=refine)
     failed = 0
     for r in results:
         where = r.item.source if r.item.source.name.startswith(r.item.name) else f"{r.item.source} [{r.item.name}]"
@@ -384,6 +389,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "MLflow store if one is configured and has it, else the model shipped with PLAD)")
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
     p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
+    p.add_argument("--refine", action="store_true",
+                   help="rewrite each best-of-beam program with the rewriters (PO, pruning, insertion) before "
+                        "writing it; never worse, slower")
     p.set_defaults(func=cmd_infer)
 
     p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")

@@ -35,16 +35,16 @@ class ConfigError(ValueError):
 
 
 #: Top-level keys dvc.yaml reads itself (stage names and files); a profile cannot change them.
-PIPELINE_KEYS = ("profile", "domains", "methods")
+PIPELINE_KEYS = ("profile", "domains", "methods", "beams")
 #: One section per DVC stage (and the Prefect flows').
-STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "finetune", "report", "flows")
+STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "search_only", "finetune", "report", "flows")
 #: Top-level keys a params file may have.
 SECTIONS = {*PIPELINE_KEYS, *STAGE_SECTIONS}
 #: Sections with a ``base`` block and one block per domain (DVC stages ``<stage>@<domain>``).
-PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "finetune")
+PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "search_only", "finetune")
 BASE = "base"
 #: Top-level keys handed to a section as its keys of the same name (their one home is the top level).
-INJECTED = {"prepare": ("domains",), "report": ("domains", "profile")}
+INJECTED = {"prepare": ("domains",), "report": ("domains", "profile", "beams")}
 
 
 def profile_path(params_path: str | os.PathLike, profile: str) -> Path:
@@ -232,6 +232,11 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
     values = {}
     for key, value in raw.items():
         hint = hints[key]
+        if value is not None and typing.get_origin(hint) in (typing.Union, types.UnionType):
+            # an optional dataclass (``X | None``): a mapping builds X
+            inner = [a for a in typing.get_args(hint) if a is not type(None)]
+            if len(inner) == 1 and dataclasses.is_dataclass(inner[0]):
+                hint = inner[0]
         if dataclasses.is_dataclass(hint):
             values[key] = build(hint, value, f"{where}.{key}", source)
             continue

@@ -83,8 +83,12 @@ def _wrap(text: str, width: int = 90) -> str:
 
 
 def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
-                batch_size: int = 16, progress: bool = True) -> list[Result]:
-    """Best-of-beam programs for the good items, their output files, and ``results.csv``."""
+                batch_size: int = 16, progress: bool = True, refine=None) -> list[Result]:
+    """Best-of-beam programs for the good items, their output files, and ``results.csv``.
+
+    ``refine`` (a :class:`plad.rewrite.RefineConfig`, or None): rewrite each shape's best-of-beam program
+    with the rewriters before writing it (never worse; ``plad infer --refine``).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = next(model.parameters()).device
@@ -95,15 +99,23 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
             chunk = good[start:start + batch_size]
             targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
             inferred = infer_programs(model, domain, targets, beam)
+            programs, values, recons = inferred.programs, inferred.values.cpu(), inferred.shapes.cpu()
+            if refine is not None:
+                from plad.rewrite import refine as rewrite
+                from plad.rewrite.evaluate import Scorer
+
+                refined = rewrite(domain, programs, targets.cpu(), refine)
+                programs, values = refined.programs, refined.values
+                recons = Scorer(domain, targets.cpu()).outputs(programs)
             for j, it in enumerate(chunk):
-                value = float(inferred.values[j])
-                recon = inferred.shapes[j].cpu().numpy()
+                value = float(values[j])
+                recon = recons[j].numpy()
                 r = results[id(it)]
-                r.program, r.value = domain.format(inferred.programs[j]), value
+                r.program, r.value = domain.format(programs[j]), value
                 if not recon.any():
                     it.notes.append("the inferred program executes to an empty shape")
                 try:
-                    r.outputs = _write_outputs(domain, it, inferred.programs[j], recon, value, out)
+                    r.outputs = _write_outputs(domain, it, programs[j], recon, value, out)
                 except OSError as err:
                     it.error = f"could not write its outputs ({err})"
             bar.update(len(chunk))

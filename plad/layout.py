@@ -12,7 +12,11 @@ hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
     runs/finetune/<domain>/<method>/             fine-tuning: best.pt, state.json, summary.json, method state
     results/finetune/<domain>/<method>.json      the fine-tuning summary again, as a DVC metric
     results/eval/<method>/<domain>/              test evaluation: metrics.json, <split>_programs.csv, grid.png
+    results/eval/<method>_refined/<domain>/      the same with test-time refinement of the beam's outputs
+    results/eval/<method>_beam<k>/<domain>/      the same with beam k (the amortization sweep)
+    results/eval/search/<domain>/                search from scratch, no network (stage search_only)
     results/table.md, convergence.png, report.json   the report
+    results/amortization.md, amortization.png    the report: metric against seconds per shape
     runs/flows/<run name>/                       a Prefect flow run: the same layout below it
 
 The pretrained model is the method ``sp`` (:data:`SP`): its model is
@@ -38,6 +42,16 @@ GRID = "grid.png"
 TABLE = "table.md"
 CONVERGENCE = "convergence.png"
 REPORT = "report.json"
+AMORTIZATION_TABLE = "amortization.md"
+AMORTIZATION_PLOT = "amortization.png"
+#: the result key (``results/eval/search/<domain>/``) of search from scratch without a network
+SEARCH = "search"
+
+
+def eval_key(method: str, beam: int | None = None, refine: bool = False) -> str:
+    """The result key of an evaluation: the method's, ``<method>_beam<k>`` for a beam of the amortization
+    sweep, ``<method>_refined`` with test-time refinement."""
+    return method + (f"_beam{beam}" if beam is not None else "") + ("_refined" if refine else "")
 
 
 def programs_csv(split: str) -> str:

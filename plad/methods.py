@@ -14,7 +14,7 @@ whole from one source, chosen at random with the normalized weights.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -29,6 +29,30 @@ Source = Callable[[np.random.Generator, int], Batch]
 
 
 @dataclass
+class PBestSearchConfig:
+    """Search beside learning (params ``finetune.<domain>.methods.<key>.search``): P_BEST seeded by search
+    from scratch before the first round's training, and a share of it rewritten after each round's inference
+    (:mod:`plad.pbest_search`)."""
+
+    #: share of the training shapes searched from scratch in round 1 (0: no seeding)
+    seed_share: float = 1.0
+    #: wall-clock budget of the seeding, minutes (null: none)
+    seed_minutes: float | None = None
+    #: search configuration overrides (:func:`plad.rewrite.search_config`, e.g. ``{refine: {rounds: 0}}``)
+    seed_config: dict = field(default_factory=dict)
+    #: share of the P_BEST entries rewritten after each round's inference (unrefined entries first; 0: none)
+    rewrite_share: float = 0.5
+    #: wall-clock budget of each round's rewriting, minutes (null: none)
+    rewrite_minutes: float | None = None
+    #: refine configuration overrides (:class:`plad.rewrite.RefineConfig`, e.g. ``{rounds: 3}``)
+    rewrite_config: dict = field(default_factory=dict)
+    #: worker processes (one thread each)
+    workers: int = 1
+    #: shapes per chunk (a chunk is the unit of work of a worker and of resuming)
+    chunk: int = 256
+
+
+@dataclass
 class MethodConfig:
     """One fine-tuning method of the comparison (params ``finetune.<domain>.methods.<key>``)."""
 
@@ -36,6 +60,8 @@ class MethodConfig:
     method: str = "lest+st"
     #: P_BEST mode of PLAD methods: all-time (the paper's) or per-round (the supplement's ablation); its one home
     pbest_mode: str = "all-time"
+    #: search-seeded and rewritten P_BEST (PLAD methods; null: the paper's P_BEST, from inference only)
+    search: PBestSearchConfig | None = None
 
 
 @dataclass(frozen=True)

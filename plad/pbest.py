@@ -5,7 +5,8 @@ against the training shape. In "all-time" mode (the paper's default) an
 entry only changes when a new program scores at least as well (ties go to
 the new program, as in the reference code), so the mean metric never gets
 worse; in "per-round" mode every round starts from scratch (the
-supplement's ablation). Saved atomically (``.npz``) and reloaded on resume.
+supplement's ablation). Each entry also records whether a rewriter
+(:mod:`plad.pbest_search`) has refined it since it last changed. Saved atomically (``.npz``) and reloaded on resume.
 """
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ class PBest:
         self.programs = np.full((n, max_len), -1, dtype=np.int16)    # -1 padded token ids
         self.values = np.full(n, np.nan)                              # NaN: no entry yet
         self.executions = np.zeros((n, *shape), dtype=bool)
+        #: the entry was refined by a rewriter and has not changed since
+        self.refined = np.zeros(n, dtype=bool)
 
     def __len__(self) -> int:
         return len(self.values)
@@ -59,10 +62,14 @@ class PBest:
             self.values[:] = np.nan
             self.programs[:] = -1
             self.executions[:] = False
+            self.refined[:] = False
 
     def update(self, index: np.ndarray, programs: list[list[int]], values: np.ndarray,
-               executions: np.ndarray) -> UpdateStats:
-        """Offer new programs for shapes ``index``; keep each if at least as good as the entry."""
+               executions: np.ndarray, refined: bool = False) -> UpdateStats:
+        """Offer new programs for shapes ``index``; keep each if at least as good as the entry.
+
+        ``refined``: the programs come from a rewriter (the flag of each kept entry is set to it).
+        """
         index = np.asarray(index)
         values = np.asarray(values, dtype=np.float64)
         old = self.values[index]
@@ -75,6 +82,7 @@ class PBest:
             self.programs[i, : len(programs[j])] = programs[j]
         self.values[index[take]] = values[take]
         self.executions[index[take]] = executions[take]
+        self.refined[index[take]] = refined
         improved = (strictly & ~np.isnan(old)) | (np.isnan(old) & take)
         has = self.has
         return UpdateStats(mean=float(self.values[has].mean()) if has.any() else float("nan"),
@@ -86,7 +94,8 @@ class PBest:
         buf = io.BytesIO()
         np.savez_compressed(buf, programs=self.programs, values=self.values,
                             executions=np.packbits(self.executions.reshape(len(self), -1), axis=1),
-                            shape=np.asarray(self.executions.shape[1:]), mode=np.asarray(self.mode))
+                            shape=np.asarray(self.executions.shape[1:]), mode=np.asarray(self.mode),
+                            refined=self.refined)
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
     @classmethod
@@ -96,6 +105,8 @@ class PBest:
             out = cls(len(z["values"]), shape, z["programs"].shape[1], metric, str(z["mode"]))
             out.programs = z["programs"].copy()
             out.values = z["values"].copy()
+            if "refined" in z.files:   # files of older versions have no flags: nothing refined
+                out.refined = z["refined"].copy()
             n = int(np.prod(shape))
             out.executions = np.unpackbits(z["executions"], axis=1, count=n).astype(bool).reshape(-1, *shape)
         return out

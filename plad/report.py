@@ -1,5 +1,11 @@
 """The results report: the paper's Table 1 layout, convergence curves, the P_BEST ablation.
 
+Beyond the paper: rows with search (search only, a search-seeded P_BEST,
+test-time refinement) with their seconds per shape, and the amortization
+picture (metric against seconds per shape). These come from the evaluation
+files only (:class:`Timed`); a missing one is named in the report, never an
+error, so a profile or a partial run without them still gets its report.
+
 Inputs are gathered per method either from the pipeline's files (the
 evaluation ``metrics.json`` and fine-tuning ``state.json``/``summary.json``)
 or from MLflow alone (the ``evaluate`` and ``finetune`` runs' metrics), into
@@ -17,17 +23,23 @@ from pathlib import Path
 
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
-from plad.layout import METRICS, STATE, Layout
+from plad.layout import METRICS, SEARCH, STATE, Layout, eval_key
 from plad.loop import read_state, upgrade_summary
 from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
 LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
-          "lest_st_ws": "LEST+ST+WS"}
+          "lest_st_ws": "LEST+ST+WS", SEARCH: "search, no network",
+          "lest_st_ws_search": "LEST+ST+WS + search-seeded P_BEST"}
 
 
 def label(key: str) -> str:
     if key in LABELS:
         return LABELS[key]
+    if key.endswith("_refined"):
+        return label(key[: -len("_refined")]) + " + test-time refinement"
+    head, _, beam = key.rpartition("_beam")
+    if head and beam.isdigit():
+        return f"{label(head)}, beam {beam}"
     return key.replace("_per_round", " (per-round)").replace("_", "+").upper().replace("(PER-ROUND)", "(per-round)")
 
 
@@ -194,6 +206,151 @@ def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) ->
         ax.set_title(_title(domain))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write(path, lambda fh: fh.write(buf.getvalue()))
+
+
+# -- beyond the paper: rows with their time per shape ------------------------------------------------
+@dataclass
+class Timed:
+    """An evaluation's mean test metric and wall-clock seconds per shape (network and refinement parts)."""
+
+    key: str
+    test: float
+    seconds_per_shape: float
+    network_seconds_per_shape: float | None = None
+    refine_seconds_per_shape: float | None = None
+    n: int = 0
+
+
+def timed_from_files(domain: str, keys: list[str], layout: Layout) -> dict[str, Timed | None]:
+    """{result key: its :class:`Timed` from ``results/eval/<key>/<domain>/metrics.json``, or None if absent}."""
+    out: dict[str, Timed | None] = {}
+    for key in keys:
+        path = layout.eval_dir(key, domain) / METRICS
+        if not path.exists():
+            out[key] = None
+            continue
+        test = json.loads(path.read_text()).get("test")
+        if not test:
+            out[key] = None
+            continue
+        n = int(test["n"])
+        per = test.get("seconds_per_shape", test["seconds"] / max(n, 1))   # files of older versions: no split
+        out[key] = Timed(key, float(test["mean"]), float(per), test.get("network_seconds_per_shape"),
+                         test.get("refine_seconds_per_shape"), n)
+    return out
+
+
+def _seconds(v: float | None) -> str:
+    if v is None:
+        return "—"
+    return f"{v * 1000:.1f} ms" if v < 1 else f"{v:.2f} s"
+
+
+def missing_note(missing: list[str]) -> list[str]:
+    return [f"Not computed (no metrics.json): {', '.join(missing)}.", ""] if missing else []
+
+
+def beyond_markdown(rows: dict[str, dict[str, Timed | None]], keys: list[str]) -> str:
+    """The rows beyond the paper: per domain our value and seconds per shape (no paper number exists)."""
+    domains = list(rows)
+    lines = ["## Beyond the paper: search beside learning", "",
+             "Not in the paper: search from scratch without a network, LEST+ST+WS trained on a P_BEST seeded and "
+             "rewritten by search, and the same with test-time refinement of the beam's outputs. Test sets, "
+             "wall-clock seconds per shape on this machine.", ""]
+    head, rule = "| method |", "|---|"
+    for d in domains:
+        title, _, _ = _column(d)
+        head += f" {title} | s per shape |"
+        rule += "---|---|"
+    lines += [head, rule]
+    missing = []
+    for key in keys:
+        row = f"| {label(key)} |"
+        for d in domains:
+            _, k, digits = _column(d)
+            t = rows[d].get(key)
+            if t is None:
+                missing.append(f"{d}/{key}")
+            row += f" {_fmt(t.test * k if t else None, digits)} | {_seconds(t.seconds_per_shape if t else None)} |"
+        lines.append(row)
+    lines.append("")
+    lines += missing_note(missing)
+    return "\n".join(lines)
+
+
+def amortization_keys(method: str, beams: list[int]) -> list[tuple[str, str]]:
+    """(result key, kind) of the amortization picture: the network at each beam, with refinement, search only."""
+    return [*((eval_key(method, beam=b), "network") for b in beams),
+            (eval_key(method, refine=True), "network + refinement"), (SEARCH, "search only")]
+
+
+def amortization_markdown(points: dict[str, dict[str, Timed | None]], method: str, beams: list[int],
+                          profile: str | None = None) -> str:
+    """Metric against seconds per shape, per domain: network only (each beam), network + refinement, search only."""
+    keys = amortization_keys(method, beams)
+    lines = ["# Amortization: metric against seconds per shape" + (f" ({profile} profile)" if profile else ""), "",
+             f"The network is {label(method)}'s model; refinement rewrites its best-of-beam program "
+             f"(beam of the evaluation stage); search starts from scratch. Wall-clock seconds per shape on this "
+             f"machine (a shared machine's numbers include waiting for a core).", ""]
+    missing = []
+    for d, got in points.items():
+        title, k, digits = _column(d)
+        lines += [f"## {_title(d)}", "", f"| configuration | {title} | s per shape | network | refinement |",
+                  "|---|---|---|---|---|"]
+        for key, kind in keys:
+            t = got.get(key)
+            if t is None:
+                missing.append(f"{d}/{key}")
+                continue
+            lines.append(f"| {label(key)} ({kind}) | {_fmt(t.test * k, digits)} | {_seconds(t.seconds_per_shape)} | "
+                         f"{_seconds(t.network_seconds_per_shape)} | {_seconds(t.refine_seconds_per_shape)} |")
+        lines.append("")
+    lines += missing_note(missing)
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def amortization_png(points: dict[str, dict[str, Timed | None]], method: str, beams: list[int],
+                     path: str | Path) -> None:
+    """A panel per domain: metric (y) against seconds per shape (x, log), a marker per configuration."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(1, len(points))
+    fig, axes = plt.subplots(1, n, figsize=(6 * n, 4.5), dpi=110, squeeze=False)
+    style = {"network": ("o", "C0"), "network + refinement": ("s", "C1"), "search only": ("^", "C2")}
+    for ax, (d, got) in zip(axes[0], points.items()):
+        metric, k = get_domain(d).metric, get_domain(d).display_scale
+        net = [(t.seconds_per_shape, t.test * k, b) for b in beams
+               if (t := got.get(eval_key(method, beam=b))) is not None]
+        if net:
+            ax.plot([x for x, _, _ in net], [y for _, y, _ in net], "-", color="C0", alpha=0.5)
+            for x, y, b in net:
+                ax.annotate(f"beam {b}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        labelled = set()
+        for key, kind in amortization_keys(method, beams):
+            t = got.get(key)
+            if t is not None:
+                marker, color = style[kind]
+                name = f"{label(method)}, network only" if kind == "network" else label(key)
+                ax.scatter([t.seconds_per_shape], [t.test * k], marker=marker, color=color, zorder=3,
+                           label=None if name in labelled else name)
+                labelled.add(name)
+        ax.set_xscale("log")
+        ax.set_xlabel("wall-clock seconds per shape (log)")
+        ax.set_ylabel(f"test {metric.name}" + (f" x{k:g}" if k != 1 else "") +
+                      (" (higher is better)" if metric.higher_is_better else " (lower is better)"))
+        ax.set_title(_title(d))
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+        else:
+            ax.text(0.5, 0.5, "no results yet", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

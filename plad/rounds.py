@@ -19,6 +19,10 @@ batched beam search in this process); the Prefect flow passes a sharded,
 retried version. The loop itself is the one implementation used by the DVC
 stage and the flow.
 
+A hook (:attr:`RoundHooks.after_infer`) may change P_BEST after the
+inference and before the training of each round: a method with search
+seeds and rewrites it there (:mod:`plad.pbest_search`).
+
 Everything needed to resume is on disk after each round (``state.json``,
 ``pbest.npz``, ``current.pt``, ``best.pt``) and within a round (the round's
 ``last.pt``): a killed run continues at the last finished round with the
@@ -164,6 +168,9 @@ class RoundHooks:
     on_unit: Callable[[int, dict[str, Any]], None] | None = None
     #: ``on_epoch(round, epoch, row)`` after each training epoch inside a round
     on_epoch: Callable[[int, int, dict[str, Any]], None] | None = None
+    #: ``after_infer(round, pbest, train_shapes)`` after each round's inference, before its training: may
+    #: change P_BEST in place (e.g. :mod:`plad.pbest_search`); returns columns for the round's history row
+    after_infer: Callable[[int, PBest, np.ndarray], dict[str, float]] | None = None
 
 
 def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHooks | None = None) -> dict:
@@ -216,6 +223,9 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         round_dir = out / f"round_{rnd:03d}"
         if not dist.broadcast((round_dir / LAST).exists()):  # P_BEST of this round not yet updated
             stats = run(f"round {rnd}: infer", infer_into_pbest, model, job.train, pbest, infer)
+            if hooks.after_infer is not None:
+                stats.update(run(f"round {rnd}: search", hooks.after_infer, rnd, pbest, job.train))
+                stats["pbest_mean"] = float(np.nanmean(pbest.values))
             if dist.is_main():
                 pbest.save(out / "pbest_round.npz")
         else:

@@ -110,7 +110,7 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
         programs, values = optimize(scorer, programs, values, sweeps=cfg.po_sweeps, wide=cfg.wide, deadline=deadline)
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
-        if cfg.insert:
+        if cfg.insert and (deadline is None or time.perf_counter() <= deadline):   # no new step after the limit
             programs, values, _ = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False, deadline=deadline)
         if programs == before:
             break

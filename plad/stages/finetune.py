@@ -9,7 +9,8 @@ and writes to ``runs/finetune/<domain>/<key>/`` (:mod:`plad.layout`):
 ``best.pt`` (the selected model), ``state.json`` (per-round history with
 wall-clock seconds), ``summary.json`` (also copied to
 ``results/finetune/<domain>/<key>.json``), and the method's resumable state
-(P_BEST, generator, ...).
+(P_BEST, generator, search chunks, ...). A method with a ``search`` block seeds
+and rewrites P_BEST by search (:mod:`plad.pbest_search`).
 A killed run, started again, resumes at its last finished round. The PLAD
 rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`. Data-parallel
 on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -69,6 +70,13 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
             raise ConfigError(f"finetune.methods.{cfg.key}.method: {err}") from None
     if m.pbest_mode not in MODES:
         raise ConfigError(f"finetune.methods.{cfg.key}.pbest_mode {m.pbest_mode!r}: one of {', '.join(MODES)}")
+    if m.search is not None:
+        from plad.domains import get_domain
+        from plad.pbest_search import check
+
+        if m.method == "rl":
+            raise ConfigError(f"finetune.methods.{cfg.key}.search: RL has no P_BEST to search for")
+        check(m.search, get_domain(cfg.domain), f"finetune.methods.{cfg.key}.search")
     return m
 
 
@@ -114,6 +122,10 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     if spec.method == "rl":
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
+        if spec.search is not None:   # P_BEST seeded and rewritten by search after each round's inference
+            from plad.pbest_search import PBestSearch
+
+            hooks = replace(hooks, after_infer=PBestSearch(domain, spec.search, job.out_dir, cfg.seed).after_infer)
         summary = run_rounds(job, spec, cfg.plad, hooks)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}

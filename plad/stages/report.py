@@ -1,4 +1,4 @@
-"""Stage ``report``: ``results/table.md``, ``results/convergence.png`` and the MLflow champion.
+"""Stage ``report``: ``results/table.md``, ``results/convergence.png``, the amortization picture, the MLflow champion.
 
 The table has the paper's Table 1 layout (one row per method, SP first) with
 the paper's numbers beside ours, and the supplement's P_BEST all-time vs
@@ -6,6 +6,13 @@ per-round comparison. ``source: mlflow`` rebuilds the same report from the
 MLflow store alone. With ``register: true`` the model with the best
 validation metric (over SP and every fine-tuned method) is registered as
 ``plad-<domain>`` and gets the ``champion`` alias.
+
+Beyond the paper (``beyond``, from the evaluation files whatever the
+source): a table of rows with search and their seconds per shape, appended
+to ``table.md``; ``results/amortization.md`` and ``.png``: metric against
+seconds per shape for the ``amortization.method``'s model at each of
+``beams``, with test-time refinement, and search only. Missing inputs of
+these are named in the files, not errors.
 """
 from __future__ import annotations
 
@@ -17,10 +24,26 @@ from plad.config import ConfigError
 from plad.data import DataError
 from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
-from plad.layout import CONVERGENCE, REPORT, SP, TABLE, Layout
-from plad.report import convergence_png, from_files, from_mlflow, table_markdown
+from plad.layout import AMORTIZATION_PLOT, AMORTIZATION_TABLE, CONVERGENCE, REPORT, SP, TABLE, Layout
+from plad.report import (
+    amortization_keys,
+    amortization_markdown,
+    amortization_png,
+    beyond_markdown,
+    convergence_png,
+    from_files,
+    from_mlflow,
+    table_markdown,
+    timed_from_files,
+)
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, set_champion, set_version_tags
+
+
+@dataclass
+class AmortizationConfig:
+    #: the method whose model the evaluate_beams and evaluate_refined stages evaluate
+    method: str = "lest_st_ws_search"
 
 
 @dataclass
@@ -36,6 +59,11 @@ class ReportConfig:
     #: register the best model (by validation) in the MLflow registry with alias "champion"
     register: bool = True
     profile: str | None = None
+    #: rows beyond the paper, by result key (``search``, a method, ``<method>_refined``), in their own table
+    beyond: list[str] = field(default_factory=list)
+    amortization: AmortizationConfig = field(default_factory=AmortizationConfig)
+    #: the beams of the amortization sweep (the top-level ``beams``)
+    beams: list[int] = field(default_factory=lambda: [1, 5, 10])
 
 
 def gather(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
@@ -77,7 +105,16 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         raise DataError(where, f"no test evaluation for {', '.join(missing)}")
     out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / TABLE, table_markdown(results, cfg.methods, cfg.per_round, cfg.profile))
+    table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile)
+    beyond = {d: timed_from_files(d, cfg.beyond, layout) for d in cfg.domains}
+    if cfg.beyond:
+        table += "\n" + beyond_markdown(beyond, cfg.beyond)
+    atomic_write_text(out / TABLE, table)
+    keys = [k for k, _ in amortization_keys(cfg.amortization.method, cfg.beams)]
+    points = {d: timed_from_files(d, keys, layout) for d in cfg.domains}
+    atomic_write_text(out / AMORTIZATION_TABLE,
+                      amortization_markdown(points, cfg.amortization.method, cfg.beams, cfg.profile))
+    amortization_png(points, cfg.amortization.method, cfg.beams, out / AMORTIZATION_PLOT)
     convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
@@ -86,6 +123,8 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         best = champion(cfg, d, rs)
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}
+        entry["beyond"] = {k: (vars(t) if t else None) for k, t in beyond[d].items()}
+        entry["amortization"] = {k: (vars(t) if t else None) for k, t in points[d].items()}
         summary["domains"][d] = entry
     atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
     return summary
@@ -96,7 +135,7 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
     out = ctx.layout.results_dir
     with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run", params_path=ctx.params) as run:
         summary = report(cfg, ctx.layout)
-        for name in [TABLE, CONVERGENCE, REPORT]:
+        for name in [TABLE, CONVERGENCE, REPORT, AMORTIZATION_TABLE, AMORTIZATION_PLOT]:
             run.log_artifact(out / name)
         if cfg.register:
             for d, entry in summary["domains"].items():

@@ -24,6 +24,8 @@ import yaml
 
 from plad.config import INJECTED, PER_DOMAIN, load_params
 from plad.layout import (
+    AMORTIZATION_PLOT,
+    AMORTIZATION_TABLE,
     BEST,
     CONVERGENCE,
     GRID,
@@ -31,12 +33,15 @@ from plad.layout import (
     LAST,
     METRICS,
     REPORT,
+    SEARCH,
     SP,
     SUMMARY,
     TABLE,
     Layout,
+    eval_key,
     programs_csv,
 )
+from plad.report import amortization_keys
 from tests.conftest import REPO_ROOT
 from tests.plad.domains.test_plugin_boundary import imported_modules
 
@@ -180,9 +185,10 @@ def covers(dep: str, path: str) -> bool:
 def test_the_pipeline_has_every_stage_of_every_domain_and_method():
     p = params()
     names = {s.name for s in stages()}
-    assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate")
-                                             for d in p["domains"]} | \
-        {f"{g}@{d}-{m}" for g in ("finetune", "evaluate_finetuned") for d in p["domains"] for m in p["methods"]}
+    assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate", "search_only",
+                                                                  "evaluate_refined") for d in p["domains"]} | \
+        {f"{g}@{d}-{m}" for g in ("finetune", "evaluate_finetuned") for d in p["domains"] for m in p["methods"]} | \
+        {f"evaluate_beams@{d}-{b}" for d in p["domains"] for b in p["beams"]}
 
 
 def test_every_stage_depends_on_the_code_it_imports_and_no_other():
@@ -275,8 +281,14 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "pretrain":
         out = layout.pretrain_dir(domain)
         return rel([layout.synthetic(domain)]), rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY])
-    if stage.group in ("evaluate", "evaluate_finetuned"):
-        out = layout.eval_dir(method, domain)
+    if stage.group == "search_only":
+        out = layout.eval_dir(SEARCH, domain)
+        splits = p["search_only"][domain]["splits"]
+        return rel([layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / METRICS])
+    if stage.group in ("evaluate", "evaluate_finetuned", "evaluate_refined", "evaluate_beams"):
+        sweep = stage.sets.get("sweep_beam")
+        out = layout.eval_dir(eval_key(method, int(sweep) if sweep else None, stage.sets.get("refine") == "true"),
+                              domain)
         splits = p["evaluate"][domain]["splits"]
         model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
         return rel([model, layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / GRID,
@@ -287,11 +299,15 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "report":
         rows = [*p["report"]["methods"], *p["report"]["per_round"].values()]
         ins = [layout.eval_dir(m, d) / METRICS for m in rows for d in p["domains"]]
+        timed = [*p["report"]["beyond"], *(k for k, _ in amortization_keys(p["report"]["amortization"]["method"],
+                                                                             p["beams"]))]
+        ins += [layout.eval_dir(k, d) / METRICS for k in timed for d in p["domains"]]
         ins += [layout.finetune_dir(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.finetune_summary(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.model(d) for d in p["domains"]]   # the champion may be the pretrained model
         out = layout.results_dir
-        return rel(ins), rel([out / TABLE, out / CONVERGENCE, out / REPORT])
+        return rel(ins), rel([out / TABLE, out / CONVERGENCE, out / REPORT, out / AMORTIZATION_TABLE,
+                              out / AMORTIZATION_PLOT])
     raise AssertionError(f"no layout known for stage {stage.name}")
 
 

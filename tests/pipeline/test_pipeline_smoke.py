@@ -88,7 +88,7 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
     for domain in DOMAINS:
         mine = finetuned[finetuned["tags.plad.domain"] == domain]
-        assert set(mine["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round"}
+        assert set(mine["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round", "lest_st_ws_search"}
     finetuned = finetuned[finetuned["tags.plad.domain"] == "csg2d"]
     rounds = runs[runs["tags.mlflow.parentRunId"].isin(finetuned["run_id"])]
     ws = finetuned[finetuned["tags.plad.method"] == "lest_st_ws"].iloc[0]
@@ -157,3 +157,24 @@ def test_report_registers_the_champion(smoke_run):
         champ = report["domains"][domain]["champion"]
         version = mlflow.MlflowClient().get_model_version_by_alias(f"plad-{domain}", "champion")
         assert str(version.version) == champ["version"] and version.tags["plad.method"] == champ["method"]
+
+
+def test_smoke_repro_writes_the_rows_beyond_the_paper(smoke_run):
+    work, *_ = smoke_run
+    ev = work / "results" / "eval"
+    for domain, n, higher in [("csg2d", 20, False), ("csg3d", 10, True), ("shapeassembly", 10, True)]:
+        search = json.loads((ev / "search" / domain / "metrics.json").read_text())
+        assert search["test"]["n"] == n and search["test"]["seconds_per_shape"] > 0
+        refined = json.loads((ev / "lest_st_ws_search_refined" / domain / "metrics.json").read_text())["test"]
+        beam10 = json.loads((ev / "lest_st_ws_search_beam10" / domain / "metrics.json").read_text())["test"]
+        assert refined["network_mean"] == beam10["mean"]        # the same model, beam and shapes
+        assert (refined["mean"] >= refined["network_mean"]) if higher else (refined["mean"] <= refined["network_mean"])
+        for beam in (1, 5):
+            assert json.loads((ev / f"lest_st_ws_search_beam{beam}" / domain / "metrics.json").read_text())["beam"] \
+                == beam
+        state = json.loads((work / "runs" / "finetune" / domain / "lest_st_ws_search" / "state.json").read_text())
+        assert state["history"][1]["seed_shapes"] > 0 and state["history"][1]["rewrite_shapes"] > 0
+    assert "Not computed" not in (work / "results" / "amortization.md").read_text()
+    table = (work / "results" / "table.md").read_text()
+    assert "| search, no network |" in table and "Not computed" not in table
+    assert (work / "results" / "amortization.png").read_bytes()[:4] == b"\x89PNG"

@@ -20,10 +20,12 @@ def stage_classes():
     from plad.stages.prepare import PrepareConfig
     from plad.stages.pretrain import PretrainConfig
     from plad.stages.report import ReportConfig
+    from plad.stages.search_only import SearchOnlyConfig
     from plad.stages.synthesize import SynthesizeConfig
 
     return {"prepare": PrepareConfig, "synthesize": SynthesizeConfig, "pretrain": PretrainConfig,
-            "evaluate": EvaluateConfig, "finetune": FinetuneStageConfig, "report": ReportConfig, "flows": FlowsConfig}
+            "evaluate": EvaluateConfig, "search_only": SearchOnlyConfig, "finetune": FinetuneStageConfig,
+            "report": ReportConfig, "flows": FlowsConfig}
 
 
 def project(tmp_path: Path, profile: str = "cpu", params: dict | None = None, profiles: dict | None = None) -> Path:
@@ -174,4 +176,4 @@ def test_every_domain_block_key_and_every_profile_key_changes_something(tmp_path
             (tmp_path / "profiles" / f"{profile}.yaml").write_text(yaml.safe_dump(without(over, path)))
             assert resolved(load_params(tmp_path / "params.yaml")) != full, f"{profile}: {'.'.join(path)}"
         shutil.copy(REPO / "profiles" / f"{profile}.yaml", tmp_path / "profiles" / f"{profile}.yaml")
-    assert set(params) - {"profile", "domains", "methods"} == set(STAGE_SECTIONS)
+    assert set(params) - {"profile", "domains", "methods", "beams"} == set(STAGE_SECTIONS)

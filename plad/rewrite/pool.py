@@ -1,0 +1,157 @@
+"""Search and refinement of many shapes in chunks, by a pool of worker processes.
+
+A :class:`Chunk` is a contiguous run of shapes (their targets, and for
+refinement their starting programs); :func:`run_chunks` hands the chunks to
+``workers`` processes (spawned, each with one OpenMP/torch thread, so that
+W workers use W cores whatever the parent's thread settings) and yields each
+finished chunk's :class:`ChunkResult` as it arrives, so that the caller can
+write it to disk at once and a killed run redoes only unfinished chunks. With
+one worker the chunks run in this process (one torch thread for the
+duration). The job is named by the domain's registry name and plain data,
+so it pickles cheaply.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: what a chunk does: search from scratch, or refine given programs
+KINDS = ("search", "refine")
+
+
+@dataclass
+class Chunk:
+    """Shapes ``index`` (into the caller's list) with targets (n, *shape) bool and, to refine, their programs."""
+
+    index: np.ndarray
+    targets: np.ndarray
+    programs: list[list[int]] | None = None
+
+
+@dataclass
+class ChunkResult:
+    """The chunk's shapes, the programs found (token lists), their values (n,) float64, their executions
+    (n, *shape) bool, the starting values (refine; the metric's worst for search) and the worker's seconds."""
+
+    index: np.ndarray
+    programs: list[list[int]]
+    values: np.ndarray
+    executions: np.ndarray
+    before: np.ndarray
+    seconds: float
+
+
+def _run(job: tuple[str, str, dict[str, Any], float | None, Chunk]) -> ChunkResult:
+    import torch
+
+    from plad.domains import get_domain
+    from plad.rewrite.driver import refine, search, search_config
+    from plad.rewrite.evaluate import Scorer
+
+    domain_name, kind, overrides, time_limit, chunk = job
+    domain = get_domain(domain_name)
+    targets = torch.from_numpy(np.asarray(chunk.targets, dtype=bool))
+    start = time.perf_counter()
+    if kind == "search":
+        cfg = search_config(domain, **overrides)
+        # one batch per chunk, so that the time limit (per batch) is the chunk's; without one, the configuration's
+        cfg.refine.batch = max(1, len(targets))
+        if time_limit is not None:
+            cfg.refine.time_limit = time_limit
+        result = search(domain, targets, cfg)
+        before = np.full(len(targets), float(domain.metric.worst))
+    else:
+        cfg = refine_config(overrides)
+        cfg.batch = max(1, len(targets))
+        if time_limit is not None:
+            cfg.time_limit = time_limit
+        assert chunk.programs is not None
+        before = Scorer(domain, targets).values(chunk.programs).numpy()
+        result = refine(domain, chunk.programs, targets, cfg)
+    executions = Scorer(domain, targets).outputs(result.programs).numpy()
+    return ChunkResult(np.asarray(chunk.index), result.programs, result.values.numpy(), executions, before,
+                       time.perf_counter() - start)
+
+
+def refine_config(overrides: dict[str, Any] | None):
+    """:class:`~plad.rewrite.driver.RefineConfig` with ``overrides`` (an unknown key is a ConfigError)."""
+    from plad.config import build
+    from plad.rewrite.driver import RefineConfig
+
+    return build(RefineConfig, dict(overrides or {}), "refine", source="refine configuration")
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def split(n: int, size: int) -> list[np.ndarray]:
+    """Indices 0..n-1 in contiguous chunks of at most ``size``."""
+    size = max(1, int(size))
+    return [np.arange(s, min(n, s + size)) for s in range(0, n, size)]
+
+
+def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[str, Any] | None = None,
+               workers: int = 1, time_limit: float | None = None) -> Iterator[ChunkResult]:
+    """Search (``kind="search"``) or refine (``"refine"``) every chunk; yields results as chunks finish.
+
+    ``overrides``: the search configuration's (:func:`plad.rewrite.search_config`) or the refine
+    configuration's; ``time_limit``: seconds per chunk (None: the configuration's ``time_limit``, which is
+    then per chunk too).
+    """
+    if kind not in KINDS:
+        raise ValueError(f"chunk kind {kind!r}: expected one of {', '.join(KINDS)}")
+    jobs = [(domain, kind, dict(overrides or {}), time_limit, c) for c in chunks]
+    if not jobs:
+        return
+    workers = max(1, min(int(workers), len(jobs)))
+    if workers == 1:
+        import torch
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for job in jobs:
+                yield _run(job)
+        finally:
+            torch.set_num_threads(threads)
+        return
+    # spawn, not fork: a parent that has run OpenMP regions (training) cannot safely fork workers that use
+    # them; the children read OMP_NUM_THREADS when they import torch, so it is set while they start
+    old = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"
+    try:
+        pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker)
+    finally:
+        if old is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = old
+    with pool:
+        yield from pool.imap_unordered(_run, jobs)
+
+
+def refine_all(domain: str, programs: Sequence[Sequence[int]], targets: np.ndarray,
+               overrides: dict[str, Any] | None = None, workers: int = 1,
+               chunk: int | None = None) -> tuple[list[list[int]], np.ndarray, np.ndarray]:
+    """Refine ``programs[i]`` towards ``targets[i]`` for all i: (programs, values (N,), executions (N, *shape)),
+    in the input order; no program comes back worse. ``chunk`` (default: the refine batch) shapes per job."""
+    size = chunk or refine_config(overrides).batch
+    chunks = [Chunk(c, targets[c], [list(programs[i]) for i in c]) for c in split(len(programs), size)]
+    out_programs: list[list[int]] = [[] for _ in range(len(programs))]
+    values = np.zeros(len(programs))
+    executions = np.zeros((len(programs), *targets.shape[1:]), dtype=bool)
+    for r in run_chunks(domain, "refine", chunks, overrides, workers):
+        for k, i in enumerate(r.index):
+            out_programs[int(i)] = r.programs[k]
+        values[r.index] = r.values
+        executions[r.index] = r.executions
+    return out_programs, values, executions

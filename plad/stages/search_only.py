@@ -1,0 +1,94 @@
+"""Stage ``search_only``: search from scratch on the real test shapes, no network (the "search, no network" row).
+
+Runs :func:`plad.rewrite.baseline.run_baseline` (the domain's default
+search configuration with ``search`` overrides, ``workers`` processes of one
+thread each) on the prepared shapes of every configured split and writes to
+``results/eval/search/<domain>/`` (:mod:`plad.layout`): ``metrics.json``
+(mean metric per split, seconds per shape: wall, per process and CPU) and
+``<split>_programs.csv`` (index, metric value, program text per shape), the
+same files as an evaluation of a network.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+
+from plad.layout import METRICS, SEARCH, Layout, programs_csv
+from plad.stages import StageContext, stage_main
+
+
+@dataclass
+class SearchOnlyConfig:
+    domain: str = field(kw_only=True)
+    splits: list[str] = field(default_factory=lambda: ["test"])
+    #: only the first N shapes of each split (None: all)
+    limit: int | None = None
+    #: worker processes (one thread each)
+    workers: int = 1
+    #: search configuration overrides (:func:`plad.rewrite.search_config`; {}: the domain's defaults)
+    search: dict = field(default_factory=dict)
+
+
+def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
+    from plad.config import ConfigError
+    from plad.data import load_prepared
+    from plad.domains import get_domain
+    from plad.fsutil import atomic_write_text
+    from plad.rewrite import search_config
+    from plad.rewrite.baseline import run_baseline
+
+    domain = get_domain(cfg.domain)
+    if domain.rewrite is None:
+        raise ConfigError(f"search_only.{cfg.domain}: the {cfg.domain} domain has no search support")
+    try:
+        search_config(domain, **cfg.search)
+    except (ConfigError, TypeError) as err:
+        raise ConfigError(f"search_only.{cfg.domain}.search: {err}") from None
+    if cfg.workers < 1:
+        raise ConfigError(f"search_only.{cfg.domain}.workers = {cfg.workers}: expected at least 1")
+    out = layout.eval_dir(SEARCH, cfg.domain)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"domain": cfg.domain, "method": SEARCH, "metric": domain.metric.name,
+                    "higher_is_better": domain.metric.higher_is_better, "workers": cfg.workers}
+    for split in cfg.splits:
+        targets = load_prepared(layout.prepared(cfg.domain), split)[: cfg.limit]
+        s = run_baseline(cfg.domain, targets, cfg.workers, cfg.search)
+        programs, values = s.pop("programs"), s.pop("values")
+        report[split] = {"mean": round(float(s["mean"]), 6), "n": s["n"], "seconds": round(s["seconds"], 1),
+                         "seconds_per_shape": s["seconds_per_shape"],
+                         "process_seconds_per_shape": s["process_seconds_per_shape"],
+                         "cpu_seconds_per_shape": s["cpu_seconds_per_shape"], "mean_tokens": s["mean_tokens"],
+                         "empty_programs": s["empty_programs"], "stats": s["stats"]}
+        buf = io.StringIO()
+        writer = csv.writer(buf)
+        writer.writerow(["index", domain.metric.name, "program"])
+        for i, (v, p) in enumerate(zip(values, programs)):
+            writer.writerow([i, f"{v:.6f}", p])
+        atomic_write_text(out / programs_csv(split), buf.getvalue())
+        report["config"] = s["config"]
+    atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def tracked_search_only(cfg: SearchOnlyConfig, ctx: StageContext = StageContext()) -> dict:
+    """:func:`search_only` as an MLflow run (method ``search``): the metric and seconds per shape per split."""
+    from plad.tracking import StageRun
+
+    out = ctx.layout.eval_dir(SEARCH, cfg.domain)
+    with StageRun("search_only", cfg.domain, asdict(cfg), out, method=SEARCH, params_path=ctx.params) as run:
+        report = search_only(cfg, ctx.layout)
+        run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
+        run.log_metrics({f"{s}_seconds_per_shape": report[s]["seconds_per_shape"] for s in cfg.splits})
+        for name in [METRICS, *[programs_csv(s) for s in cfg.splits]]:
+            run.log_artifact(out / name)
+    return {k: v for k, v in report.items() if k != "config"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main("search_only", SearchOnlyConfig, tracked_search_only, argv, __doc__.splitlines()[0])
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,124 @@
+"""Test-time refinement, the beam sweep, search-only rows and the report beyond the paper (amortization)."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plad.config import ConfigError
+from plad.layout import AMORTIZATION_PLOT, AMORTIZATION_TABLE, METRICS, SEARCH, SP, TABLE, Layout, programs_csv
+from plad.stages.evaluate import EvaluateConfig, evaluate
+from plad.stages.report import AmortizationConfig, ReportConfig, report
+
+
+def _values(path: Path) -> np.ndarray:
+    with path.open() as fh:
+        return np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
+
+
+@pytest.fixture(scope="module")
+def root(csg2d_project):
+    return csg2d_project
+
+
+def test_evaluate_with_refinement_is_never_worse_on_the_same_shapes(root):
+    layout = Layout(root)
+    base = dict(domain="csg2d", beam=2, batch_size=8, limit=8, grid_shapes=2, device="cpu")
+    plain = evaluate(EvaluateConfig(**base), layout)
+    refined = evaluate(EvaluateConfig(**base, refine=True, refine_config={"rounds": 1, "po_sweeps": 2}), layout)
+    before = _values(layout.eval_dir(SP, "csg2d") / programs_csv("test"))
+    after = _values(layout.eval_dir("sp_refined", "csg2d") / programs_csv("test"))
+    assert len(before) == len(after) == 8
+    assert (after <= before).all() and after.mean() < before.mean()   # Chamfer: lower is better
+    t = refined["test"]
+    assert t["network_mean"] == plain["test"]["mean"] and t["mean"] == pytest.approx(after.mean(), abs=1e-6)
+    assert t["refine_seconds_per_shape"] > 0 and t["network_seconds_per_shape"] > 0
+    assert t["seconds_per_shape"] == pytest.approx(t["network_seconds_per_shape"] + t["refine_seconds_per_shape"])
+    assert plain["test"]["refine_seconds_per_shape"] < 1e-3 and not plain["refine"] and refined["refine"]
+    with pytest.raises(ConfigError, match="refine_config"):
+        evaluate(EvaluateConfig(**base, refine=True, refine_config={"roundz": 1}), layout)
+
+
+def test_a_beam_of_the_sweep_has_its_own_result_folder(root):
+    layout = Layout(root)
+    got = evaluate(EvaluateConfig(domain="csg2d", beam=10, sweep_beam=1, limit=4, grid_shapes=2, device="cpu"),
+                   layout)
+    saved = json.loads((layout.eval_dir("sp_beam1", "csg2d") / METRICS).read_text())
+    assert got["beam"] == saved["beam"] == 1 and saved["test"]["n"] == 4
+
+
+def test_search_only_writes_the_row_with_seconds_per_shape(root):
+    from plad.stages.search_only import SearchOnlyConfig, search_only
+
+    layout = Layout(root)
+    got = search_only(SearchOnlyConfig(domain="csg2d", limit=3, search={"insertions": 2, "refine": {"rounds": 0}}),
+                      layout)
+    saved = json.loads((layout.eval_dir(SEARCH, "csg2d") / METRICS).read_text())
+    assert saved["test"]["n"] == 3 and saved["test"]["seconds_per_shape"] > 0
+    assert _values(layout.eval_dir(SEARCH, "csg2d") / programs_csv("test")).mean() == \
+        pytest.approx(got["test"]["mean"], abs=1e-6)
+    with pytest.raises(ConfigError, match="search"):
+        search_only(SearchOnlyConfig(domain="csg2d", limit=1, search={"insertionz": 2}), layout)
+
+
+def _metrics(layout: Layout, key: str, domain: str, mean: float, seconds: float, n: int = 10, **extra) -> None:
+    path = layout.eval_dir(key, domain) / METRICS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"test": {"mean": mean, "n": n, "seconds": seconds * n,
+                                         "seconds_per_shape": seconds, **extra}}))
+
+
+def test_the_report_builds_with_and_without_the_rows_beyond_the_paper(tmp_path):
+    layout = Layout(tmp_path)
+    _metrics(layout, SP, "csg2d", 1.5, 0.01)
+    cfg = ReportConfig(domains=["csg2d"], methods=["sp"], per_round={},
+                       beyond=[SEARCH, "lest_st_ws_search", "lest_st_ws_search_refined"],
+                       amortization=AmortizationConfig("lest_st_ws_search"), beams=[1, 5, 10])
+    report(cfg, layout)   # none of the new inputs exists: still a report, naming what is missing
+    table = (layout.results_dir / TABLE).read_text()
+    assert "| SP | 1.50" in table and "Beyond the paper" in table
+    assert "Not computed (no metrics.json): csg2d/search, csg2d/lest_st_ws_search," in table
+    amort = (layout.results_dir / AMORTIZATION_TABLE).read_text()
+    assert "csg2d/lest_st_ws_search_beam1" in amort and (layout.results_dir / AMORTIZATION_PLOT).stat().st_size > 0
+
+    _metrics(layout, SEARCH, "csg2d", 1.0, 0.2)
+    _metrics(layout, "lest_st_ws_search", "csg2d", 1.2, 0.02)
+    _metrics(layout, "lest_st_ws_search_refined", "csg2d", 0.9, 0.3, network_seconds_per_shape=0.02,
+             refine_seconds_per_shape=0.28)
+    for beam, (v, s) in {1: (1.4, 0.002), 5: (1.25, 0.01), 10: (1.2, 0.02)}.items():
+        _metrics(layout, f"lest_st_ws_search_beam{beam}", "csg2d", v, s)
+    summary = report(cfg, layout)
+    table = (layout.results_dir / TABLE).read_text()
+    assert "| search, no network | 1.000 | 200.0 ms |" in table
+    assert "| LEST+ST+WS + search-seeded P_BEST + test-time refinement | 0.900 | 300.0 ms |" in table
+    assert "Not computed" not in table
+    amort = (layout.results_dir / AMORTIZATION_TABLE).read_text()
+    assert "| LEST+ST+WS + search-seeded P_BEST, beam 1 (network) | 1.400 | 2.0 ms |" in amort
+    assert "| 0.900 | 300.0 ms | 20.0 ms | 280.0 ms |" in amort and "Not computed" not in amort
+    assert summary["domains"]["csg2d"]["amortization"]["search"]["test"] == 1.0
+
+
+def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
+    from plad.cli import main
+    from plad.data import load_prepared
+
+    layout = Layout(root)
+    shapes = load_prepared(layout.prepared("csg2d"), "test")[:3]
+    for i, shape in enumerate(shapes):
+        np.save(tmp_path / f"s{i}.npy", shape)
+    got = {}
+    for flag in ([], ["--refine"]):
+        out = tmp_path / ("refined" if flag else "plain")
+        assert main(["infer", "csg2d", *(str(tmp_path / f"s{i}.npy") for i in range(3)), "--model",
+                     str(layout.model("csg2d")), "--beam", "2", "--out", str(out), *flag]) == 0
+        with (out / "results.csv").open() as fh:
+            got[bool(flag)] = np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
+    assert (got[True] <= got[False]).all() and got[True].mean() < got[False].mean()
+    # what is written is the refined program: plad score of its files gives the reported value
+    capsys.readouterr()
+    assert main(["score", "csg2d", "--pred", str(tmp_path / "refined" / "s0.recon.npy"),
+                 "--target", str(tmp_path / "refined" / "s0.input.npy")]) == 0
+    assert float(capsys.readouterr().out.split()[-1]) == pytest.approx(got[True][0], abs=1e-5)
