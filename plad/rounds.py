@@ -186,12 +186,13 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
     metric = domain.metric
     device = next(model.parameters()).device
     names = domain.tokens.names
-    pbest = PBest(len(job.train), domain.shape, domain.tokens.max_len, metric, method.pbest_mode)
+    pbest = PBest(len(job.train), domain.shape, domain.tokens.max_len, metric, method.pbest_mode,
+                  canonical=domain.canonical)
 
     def restore() -> None:
         nonlocal pbest
         model.load_state_dict(read_checkpoint(out / "current.pt")["state_dict"])
-        pbest = PBest.load(out / "pbest.npz", metric)
+        pbest = PBest.load(out / "pbest.npz", metric, domain.canonical)
 
     def save(unit: int, folder: Path) -> None:   # staged, then moved to out/ by the store's commit
         save_checkpoint(folder / "current.pt", model, domain.name, names, {"unit": unit})
@@ -219,7 +220,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
             if dist.is_main():
                 pbest.save(out / "pbest_round.npz")
         else:
-            pbest = PBest.load(out / "pbest_round.npz", metric)
+            pbest = PBest.load(out / "pbest_round.npz", metric, domain.canonical)
             stats = {"pbest_mean": float(np.nanmean(pbest.values)), "pbest_improved": math.nan}
         stats["pbest_filled"] = float(pbest.has.mean())
         sources = {"st": st_source(pbest, job.train, device), "lest": lest_source(pbest, device)}
