@@ -12,6 +12,8 @@ hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
     runs/finetune/<domain>/<method>/             fine-tuning: best.pt, state.json, summary.json, method state
     results/finetune/<domain>/<method>.json      the fine-tuning summary again, as a DVC metric
     results/eval/<method>/<domain>/              test evaluation: metrics.json, <split>_programs.csv, grid.png
+    results/eval/floor/<domain>/                 the floor baseline (with SP's evaluation): metrics.json,
+                                                 <split>_programs.csv
     results/table.md, convergence.png, report.json   the report
     runs/flows/<run name>/                       a Prefect flow run: the same layout below it
 
@@ -25,6 +27,9 @@ from pathlib import Path
 
 #: the method key of the pretrained (supervised) model, the first row of the results table
 SP = "sp"
+#: the key of the domain's floor baseline (:meth:`plad.domains.base.Domain.floor`), evaluated with SP:
+#: ``results/eval/floor/<domain>/``
+FLOOR = "floor"
 
 # file names inside a run folder, shared by the training loops that write them and the stages that read them
 BEST = "best.pt"          # the selected model

@@ -26,6 +26,7 @@ from plad.config import INJECTED, PER_DOMAIN, load_params
 from plad.layout import (
     BEST,
     CONVERGENCE,
+    FLOOR,
     GRID,
     HISTORY,
     LAST,
@@ -278,8 +279,11 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         out = layout.eval_dir(method, domain)
         splits = p["evaluate"][domain]["splits"]
         model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
-        return rel([model, layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / GRID,
-                                                           out / METRICS])
+        outs = [*(out / programs_csv(s) for s in splits), out / GRID, out / METRICS]
+        if method == SP:   # the floor baseline is evaluated with SP
+            floor = layout.eval_dir(FLOOR, domain)
+            outs += [*(floor / programs_csv(s) for s in splits), floor / METRICS]
+        return rel([model, layout.prepared(domain)]), rel(outs)
     if stage.group == "finetune":
         return rel([layout.model(domain), layout.prepared(domain)]), \
             rel([layout.finetune_dir(domain, method), layout.finetune_summary(domain, method)])

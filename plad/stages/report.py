@@ -18,7 +18,14 @@ from plad.data import DataError
 from plad.domains import get_domain
 from plad.fsutil import atomic_write_text
 from plad.layout import CONVERGENCE, REPORT, SP, TABLE, Layout
-from plad.report import convergence_png, from_files, from_mlflow, table_markdown
+from plad.report import (
+    convergence_png,
+    floor_from_files,
+    floor_from_mlflow,
+    from_files,
+    from_mlflow,
+    table_markdown,
+)
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, set_champion, set_version_tags
 
@@ -77,12 +84,17 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         raise DataError(where, f"no test evaluation for {', '.join(missing)}")
     out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / TABLE, table_markdown(results, cfg.methods, cfg.per_round, cfg.profile))
+    if cfg.source == "mlflow":
+        floors = {d: floor_from_mlflow(d) for d in cfg.domains}
+    else:
+        floors = {d: floor_from_files(d, layout) for d in cfg.domains}
+    atomic_write_text(out / TABLE, table_markdown(results, cfg.methods, cfg.per_round, cfg.profile, floors))
     convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
     for d, rs in results.items():
-        entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs}}
+        entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs},
+                 "floor": floors[d]}
         best = champion(cfg, d, rs)
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}
