@@ -230,7 +230,8 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                 len(job.train), job.seed * 104_729 + rnd, remaining())
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
-        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd))
+        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd),
+                                  bucket_pool=cfg.train.bucket_pool)
         # the round trains within what is left of the run's budget
         result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir,
                      domain=domain.name, token_names=names,

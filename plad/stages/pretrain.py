@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from plad import distributed as dist
+from plad.batching import bucket_batches, trim
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
 from plad.device import resolve_device
@@ -63,8 +64,10 @@ def load_programs(path: Path) -> dict[str, torch.Tensor]:
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
-    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here."""
+    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here; the programs are cut
+    to the longest one (:func:`plad.batching.trim`)."""
     programs, lengths = split_padding(programs.to(device))
+    programs = trim(programs, lengths)
     return domain.execute(programs), programs, lengths
 
 
@@ -87,13 +90,25 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     history = out / HISTORY
     bs = cfg.train.batch_size
 
+    lengths = (train >= 0).sum(1).numpy()
+    # length buckets: pools of bucket_pool batches per rank, never more than the data holds
+    pool = max(1, min(cfg.train.bucket_pool, len(train) // (bs * dist.world())))
+
     def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
         # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
+        rng = np.random.default_rng([cfg.seed, epoch])   # the order of the buckets, the same on every rank
         while True:
             perm = torch.randperm(len(train), generator=gen)
-            for start in dist.chunk_starts(len(perm), bs):
-                yield make_batch(domain, train[perm[start:start + bs]], device)
+            if pool == 1:
+                for start in dist.chunk_starts(len(perm), bs):
+                    yield make_batch(domain, train[perm[start:start + bs]], device)
+                continue
+            size = pool * bs * dist.world()
+            for start in range(0, len(perm) // size * size, size):
+                idx = perm[start:start + size].numpy()
+                for b in bucket_batches(lengths[idx], bs, rng)[dist.rank()::dist.world()]:
+                    yield make_batch(domain, train[idx[b]], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
     metric = domain.metric
@@ -129,7 +144,9 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
-                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
+                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
+                   # buckets change the batches (plain batches keep the fingerprint of earlier versions)
+                   **({"bucket_pool": pool} if pool > 1 else {})}
     last = out / LAST
     if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
