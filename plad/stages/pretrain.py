@@ -1,7 +1,8 @@
 """Stage ``pretrain``: supervised pretraining of p(z|x) on synthetic (shape, program) pairs.
 
 Programs come from the ``synthesize`` stage; their shapes are executed on
-the fly. Early stopping and the learning-rate schedule follow the
+the fly; batches group programs of similar length (``train.bucket_pool``,
+:mod:`plad.batching`). Early stopping and the learning-rate schedule follow the
 validation loss on the held-out synthetic programs; the greedy-decoding
 metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 
