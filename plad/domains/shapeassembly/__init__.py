@@ -118,7 +118,8 @@ class ShapeAssembly(Domain):
     # canonical(): the default, the program itself. No choice of this language is free: the two Attaches of a
     # part run in order (the first translates, the second scales and turns), Squeeze's two targets play
     # different roles (the named face against the first), a Reflect or Translate copy re-solves the moves in
-    # order, and every number moves or sizes a cuboid whose voxels then change (docs/shapeassembly.md).
+    # order, and every number moves or sizes a cuboid and so places what is attached to it: numbers that
+    # draw the same voxels do so only in context (docs/shapeassembly.md, "The discretized language").
 
     floor_name = "one box"
 
