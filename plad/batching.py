@@ -17,6 +17,8 @@ what it draws.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
+
 import numpy as np
 import torch
 
@@ -34,6 +36,24 @@ def bucket_batches(lengths: np.ndarray, batch_size: int, rng: np.random.Generato
     if rng is not None and len(batches) > 1:
         batches = [batches[i] for i in rng.permutation(len(batches))]
     return batches
+
+
+def bucketed(batches: Iterable[np.ndarray], lengths: np.ndarray, pool: int,
+             rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """A stream of index batches (any sampler's: a permutation, a curriculum) regrouped by program length:
+    every ``pool`` batches are pooled and cut again by :func:`bucket_batches` (``lengths``: of every example,
+    by index). ``pool`` 1 passes the stream through unchanged; a last incomplete pool is not used."""
+    if pool <= 1:
+        yield from batches
+        return
+    held: list[np.ndarray] = []
+    for batch in batches:
+        held.append(np.asarray(batch))
+        if len(held) == pool:
+            idx = np.concatenate(held)
+            held = []
+            for b in bucket_batches(lengths[idx], len(idx) // pool, rng):
+                yield idx[b]
 
 
 def trim(programs: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
@@ -62,4 +82,4 @@ def padding_share(batches: list[np.ndarray], width: int | None = None) -> float:
     return 1 - sum(int(x.sum()) for x in batches) / max(total, 1)
 
 
-__all__ = ["Batch", "bucket_batches", "padding_share", "split_batch", "trim", "trim_batch"]
+__all__ = ["Batch", "bucket_batches", "bucketed", "padding_share", "split_batch", "trim", "trim_batch"]

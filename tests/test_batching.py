@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from plad.batching import bucket_batches, padding_share, split_batch, trim
+from plad.batching import bucket_batches, bucketed, padding_share, split_batch, trim
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.methods import Mixture, mixture_batches
@@ -26,6 +26,22 @@ def test_buckets_use_every_example_once_in_batches_of_similar_length():
     again = bucket_batches(lengths, 32, np.random.default_rng(1))
     assert all((a == b).all() for a, b in zip(batches, again))
     assert [int(lengths[b].max()) for b in batches] != sorted(int(lengths[b].max()) for b in batches)
+
+
+def test_any_stream_of_batches_can_be_bucketed():
+    """A sampler's stream (here a fixed list of index batches) regrouped pool by pool; pool 1 leaves it alone."""
+    rng = np.random.default_rng(4)
+    lengths = rng.integers(1, 100, size=1000)
+    stream = [rng.choice(1000, size=16, replace=False) for _ in range(10)]
+    assert all((a == b).all() for a, b in zip(bucketed(iter(stream), lengths, 1, rng), stream))
+    out = list(bucketed(iter(stream), lengths, 4, np.random.default_rng(0)))
+    assert len(out) == 8 and all(len(b) == 16 for b in out)      # two pools of four; the last two batches wait
+    for k in range(2):
+        pool = np.concatenate(stream[4 * k:4 * k + 4])
+        got = out[4 * k:4 * k + 4]
+        assert sorted(np.concatenate(got).tolist()) == sorted(pool.tolist())
+        assert sum(int(lengths[b].max() - lengths[b].min()) for b in got) < \
+            sum(int(lengths[b].max() - lengths[b].min()) for b in stream[4 * k:4 * k + 4]) / 3
 
 
 def test_bucketing_leaves_the_loss_of_a_fixed_batch_unchanged():

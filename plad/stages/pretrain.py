@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from plad import distributed as dist
-from plad.batching import bucket_batches, trim
+from plad.batching import bucketed, trim
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
 from plad.device import resolve_device
@@ -91,25 +91,21 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     history = out / HISTORY
     bs = cfg.train.batch_size
 
-    lengths = (train >= 0).sum(1).numpy()
-    # length buckets: pools of bucket_pool batches per rank, never more than the data holds
-    pool = max(1, min(cfg.train.bucket_pool, len(train) // (bs * dist.world())))
+    program_lengths = (train >= 0).sum(1).numpy()
 
-    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+    def indices(epoch: int) -> Iterator[np.ndarray]:
         # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
-        rng = np.random.default_rng([cfg.seed, epoch])   # the order of the buckets, the same on every rank
         while True:
             perm = torch.randperm(len(train), generator=gen)
-            if pool == 1:
-                for start in dist.chunk_starts(len(perm), bs):
-                    yield make_batch(domain, train[perm[start:start + bs]], device)
-                continue
-            size = pool * bs * dist.world()
-            for start in range(0, len(perm) // size * size, size):
-                idx = perm[start:start + size].numpy()
-                for b in bucket_batches(lengths[idx], bs, rng)[dist.rank()::dist.world()]:
-                    yield make_batch(domain, train[idx[b]], device)
+            for start in dist.chunk_starts(len(perm), bs):
+                yield perm[start:start + bs].numpy()
+
+    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+        # grouped by program length, bucket_pool of this rank's batches at a time (plad.batching)
+        rng = np.random.default_rng([cfg.seed, epoch, dist.rank()])
+        for idx in bucketed(indices(epoch), program_lengths, cfg.train.bucket_pool, rng):
+            yield make_batch(domain, train[torch.from_numpy(idx)], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
     metric = domain.metric
@@ -147,7 +143,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
                    # buckets change the batches (plain batches keep the fingerprint of earlier versions)
-                   **({"bucket_pool": pool} if pool > 1 else {})}
+                   **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {})}
     last = out / LAST
     if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
