@@ -34,6 +34,7 @@ def test_canonical_form_of_sampled_programs_executes_the_same(name):
     _same_execution(domain, domain.sample(1000, np.random.default_rng(7)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", domain_names())
 def test_canonical_form_of_10000_sampled_programs_executes_the_same(name, request):
     # about 30 s for csg3d and longer for shapeassembly (its sampler): select with -m slow
