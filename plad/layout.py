@@ -15,6 +15,8 @@ hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
     results/eval/<method>_refined/<domain>/      the same with test-time refinement of the beam's outputs
     results/eval/<method>_beam<k>/<domain>/      the same with beam k (the amortization sweep)
     results/eval/search/<domain>/                search from scratch, no network (stage search_only)
+    results/eval/floor/<domain>/                 the floor baseline (with SP's evaluation): metrics.json,
+                                                 <split>_programs.csv
     results/table.md, convergence.png, report.json   the report
     results/amortization.md, amortization.png    the report: metric against seconds per shape
     runs/flows/<run name>/                       a Prefect flow run: the same layout below it
@@ -29,6 +31,9 @@ from pathlib import Path
 
 #: the method key of the pretrained (supervised) model, the first row of the results table
 SP = "sp"
+#: the key of the domain's floor baseline (:meth:`plad.domains.base.Domain.floor`), evaluated with SP:
+#: ``results/eval/floor/<domain>/``
+FLOOR = "floor"
 
 # file names inside a run folder, shared by the training loops that write them and the stages that read them
 BEST = "best.pt"          # the selected model

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from plad.batching import split_batch, trim_batch
 from plad.domains.base import split_padding
 from plad.pbest import PBest
 
@@ -117,15 +118,26 @@ def lest_source(pbest: PBest, device: torch.device) -> Source:
 
 
 def mixture_batches(mixture: Mixture, sources: dict[str, Source], batch_size: int,
-                    seed: int) -> Callable[[int], Iterator[Batch]]:
-    """``batches(epoch)`` (from 0) for :func:`plad.train.fit`: each batch whole from one source, by weight."""
+                    seed: int, bucket_pool: int = 1) -> Callable[[int], Iterator[Batch]]:
+    """``batches(epoch)`` (from 0) for :func:`plad.train.fit`: each batch whole from one source, by weight.
+
+    With ``bucket_pool`` > 1 a source draws that many batches' worth of pairs at once, which are grouped into
+    batches by program length (:mod:`plad.batching`) and handed out one at a time whenever the source is
+    chosen. Batches are cut to their longest program.
+    """
     missing = [n for n in mixture.names if n not in sources]
     if missing:
         raise ValueError(f"no data for source(s) {', '.join(missing)}")
 
     def batches(epoch: int) -> Iterator[Batch]:
         rng = np.random.default_rng([seed, epoch])
+        pending: dict[str, list[Batch]] = {name: [] for name in mixture.names}
         while True:
             name = mixture.names[rng.choice(len(mixture.names), p=mixture.weights)]
-            yield sources[name](rng, batch_size)
+            if bucket_pool <= 1:
+                yield trim_batch(sources[name](rng, batch_size))
+                continue
+            if not pending[name]:
+                pending[name] = split_batch(sources[name](rng, batch_size * bucket_pool), batch_size, rng)
+            yield pending[name].pop()
     return batches

@@ -1,7 +1,9 @@
 """P_BEST: the best program found so far for every training shape.
 
 Each entry holds the program's tokens, its execution and its metric value
-against the training shape. In "all-time" mode (the paper's default) an
+against the training shape; a program is stored in its domain's canonical form
+(``canonical``, :meth:`plad.domains.base.Domain.canonical`: the same execution,
+so the same value). In "all-time" mode (the paper's default) an
 entry only changes when a new program scores at least as well (ties go to
 the new program, as in the reference code), so the mean metric never gets
 worse; in "per-round" mode every round starts from scratch (the
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,11 +37,14 @@ class UpdateStats:
 class PBest:
     """Best programs for ``n`` shapes of the given shape, judged by ``metric``."""
 
-    def __init__(self, n: int, shape: tuple[int, ...], max_len: int, metric: Metric, mode: str = "all-time"):
+    def __init__(self, n: int, shape: tuple[int, ...], max_len: int, metric: Metric, mode: str = "all-time",
+                 canonical: Callable[[Sequence[int]], list[int]] | None = None):
         if mode not in MODES:
             raise ValueError(f"P_BEST mode {mode!r}: expected one of {', '.join(MODES)}")
         self.metric = metric
         self.mode = mode
+        #: rewrites an offered program into its canonical form before it is stored (None: stored as offered)
+        self.canonical = canonical
         self.programs = np.full((n, max_len), -1, dtype=np.int16)    # -1 padded token ids
         self.values = np.full(n, np.nan)                              # NaN: no entry yet
         self.executions = np.zeros((n, *shape), dtype=bool)
@@ -78,8 +84,9 @@ class PBest:
         take = strictly | (values == old) | np.isnan(old)
         for j in np.nonzero(take)[0]:
             i = index[j]
+            program = self.canonical(programs[j]) if self.canonical else programs[j]
             self.programs[i] = -1
-            self.programs[i, : len(programs[j])] = programs[j]
+            self.programs[i, : len(program)] = program
         self.values[index[take]] = values[take]
         self.executions[index[take]] = executions[take]
         self.refined[index[take]] = refined
@@ -99,10 +106,11 @@ class PBest:
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
     @classmethod
-    def load(cls, path: str | os.PathLike, metric: Metric) -> PBest:
+    def load(cls, path: str | os.PathLike, metric: Metric,
+             canonical: Callable[[Sequence[int]], list[int]] | None = None) -> PBest:
         with np.load(Path(path)) as z:
             shape = tuple(int(v) for v in z["shape"])
-            out = cls(len(z["values"]), shape, z["programs"].shape[1], metric, str(z["mode"]))
+            out = cls(len(z["values"]), shape, z["programs"].shape[1], metric, str(z["mode"]), canonical)
             out.programs = z["programs"].copy()
             out.values = z["values"].copy()
             if "refined" in z.files:   # files of older versions have no flags: nothing refined

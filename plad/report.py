@@ -23,7 +23,7 @@ from pathlib import Path
 
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
-from plad.layout import METRICS, SEARCH, STATE, Layout, eval_key
+from plad.layout import FLOOR, METRICS, SEARCH, STATE, Layout, eval_key
 from plad.loop import read_state, upgrade_summary
 from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
@@ -71,6 +71,32 @@ def from_files(domain: str, keys: list[str], layout: Layout) -> list[MethodResul
             res.rounds, res.val_best = s.get("units"), s.get("val")
         out.append(res)
     return out
+
+
+def floor_from_files(domain: str, layout: Layout) -> float | None:
+    """The floor baseline's mean test metric (written with SP's evaluation), None when there is none."""
+    path = layout.eval_dir(FLOOR, domain) / METRICS
+    if not path.exists():
+        return None
+    test = json.loads(path.read_text()).get("test")
+    return test["mean"] if test else None
+
+
+def floor_from_mlflow(domain: str, experiment: str | None = None) -> float | None:
+    """The same from the MLflow store: the floor metric logged by the latest SP evaluation run."""
+    experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)
+    run = latest_finished_run(experiment_id, {"plad.stage": "evaluate", "plad.method": "sp", "plad.domain": domain})
+    return run.metrics.get(f"floor_test_{get_domain(domain).metric.name}") if run else None
+
+
+def floor_label(domains: list[str]) -> str:
+    """The floor row's label: what each domain's floor is, e.g. ``Floor: one box (3D CSG, ShapeAssembly)``."""
+    by: dict[str, list[str]] = {}
+    for d in domains:
+        name = get_domain(d).floor_name
+        if name:
+            by.setdefault(name, []).append(_title(d))
+    return "Floor: " + ", ".join(f"{name} ({', '.join(titles)})" for name, titles in by.items())
 
 
 def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> list[MethodResult]:
@@ -126,8 +152,11 @@ def _paper(domain: str, per_round: bool = False) -> Mapping[str, float]:
 
 
 def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], per_round: dict[str, str],
-                   profile: str | None = None) -> str:
-    """Table 1 layout: a row per method, per domain our value and the paper's; then times and P_BEST."""
+                   profile: str | None = None, floors: dict[str, float | None] | None = None) -> str:
+    """Table 1 layout: a row per method, per domain our value and the paper's; then times and P_BEST.
+
+    ``floors`` (domain -> the floor baseline's test value) adds the row of the domains' floors (no paper value).
+    """
     domains = list(results)
     by = {d: {r.key: r for r in rs} for d, rs in results.items()}
     lines = ["# Results" + (f" ({profile} profile)" if profile else ""), "",
@@ -146,6 +175,14 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
             row += f" {_fmt(r.test * k if r and r.test is not None else None, digits)} |" \
                    f" {_fmt(_paper(d).get(key), digits)} |"
         lines.append(row)
+    if floors and any(v is not None for v in floors.values()):
+        row = f"| {floor_label(domains)} |"
+        for d in domains:
+            _, k, digits = _column(d)
+            v = floors.get(d)
+            row += f" {_fmt(v * k if v is not None else None, digits)} | — |"
+        lines += [row, "", "The floor row is no method: the best program of a trivial family per test shape "
+                  "(one primitive, or the tightest axis-aligned box), found without a network."]
     lines += ["", "## Fine-tuning runs", "",
               "| method | " + " | ".join(f"{_title(d)}: minutes, rounds (RL: epochs), stop"
                                         for d in domains) + " |",

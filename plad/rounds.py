@@ -193,12 +193,13 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
     metric = domain.metric
     device = next(model.parameters()).device
     names = domain.tokens.names
-    pbest = PBest(len(job.train), domain.shape, domain.tokens.max_len, metric, method.pbest_mode)
+    pbest = PBest(len(job.train), domain.shape, domain.tokens.max_len, metric, method.pbest_mode,
+                  canonical=domain.canonical)
 
     def restore() -> None:
         nonlocal pbest
         model.load_state_dict(read_checkpoint(out / "current.pt")["state_dict"])
-        pbest = PBest.load(out / "pbest.npz", metric)
+        pbest = PBest.load(out / "pbest.npz", metric, domain.canonical)
 
     def save(unit: int, folder: Path) -> None:   # staged, then moved to out/ by the store's commit
         save_checkpoint(folder / "current.pt", model, domain.name, names, {"unit": unit})
@@ -229,7 +230,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
             if dist.is_main():
                 pbest.save(out / "pbest_round.npz")
         else:
-            pbest = PBest.load(out / "pbest_round.npz", metric)
+            pbest = PBest.load(out / "pbest_round.npz", metric, domain.canonical)
             stats = {"pbest_mean": float(np.nanmean(pbest.values)), "pbest_improved": math.nan}
         stats["pbest_filled"] = float(pbest.has.mean())
         sources = {"st": st_source(pbest, job.train, device), "lest": lest_source(pbest, device)}
@@ -239,7 +240,8 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                 len(job.train), job.seed * 104_729 + rnd, remaining())
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
-        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd))
+        batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd),
+                                  bucket_pool=cfg.train.bucket_pool)
         # the round trains within what is left of the run's budget
         result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir,
                      domain=domain.name, token_names=names,

@@ -61,6 +61,8 @@ class TrainConfig:
     lr_factor: float = 0.5
     min_lr: float = 1e-5
     grad_clip: float = 1.0
+    #: batches drawn together and grouped by program length (:mod:`plad.batching`); 1: plain random batches
+    bucket_pool: int = 1
 
 
 def _rng_state() -> dict:

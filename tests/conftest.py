@@ -127,10 +127,10 @@ def pytest_cmdline_main(config):
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Mark every test that is neither ``pipeline`` nor ``integration`` as ``unit`` (before ``-m`` selects),
+    """Mark every test that is neither ``pipeline``, ``integration`` nor ``slow`` as ``unit`` (before ``-m`` selects),
     and put files marked ``slow_first`` first, so that under ``-n 2`` one worker runs the long smoke pipeline
     while the other runs everything else (stable order otherwise)."""
     for item in items:
-        if not (item.get_closest_marker("pipeline") or item.get_closest_marker("integration")):
+        if not any(item.get_closest_marker(m) for m in ("pipeline", "integration", "slow")):
             item.add_marker(pytest.mark.unit)
     items.sort(key=lambda item: 0 if item.get_closest_marker("slow_first") else 1)

@@ -97,6 +97,28 @@ class Domain(abc.ABC):
     def sample(self, n: int, generator: np.random.Generator) -> list[list[int]]:
         """``n`` valid, non-degenerate synthetic programs for supervised pretraining."""
 
+    def canonical(self, ids: Sequence[int]) -> list[int]:
+        """The canonical form of the valid program ``ids``: a program with exactly the same execution,
+        the same for every program of its class (e.g. commutative operands in a fixed order).
+
+        Training labels (synthetic programs, P_BEST entries) are rewritten into it, so that the
+        network is not asked to guess a free choice that the execution cannot show. It never
+        makes a program longer. Default: the program itself (the domain has no such choices).
+        """
+        return list(ids)
+
+    # -- floor baseline (optional) ------------------------------------------------------------
+    #: what :meth:`floor` infers, for the results table, e.g. ``"one box"``; "": the domain has no floor
+    floor_name: str = ""
+
+    def floor(self, targets: np.ndarray) -> list[list[int]]:
+        """Floor baseline: for each target (bool (N, *shape)) the best program of a trivial family
+        (e.g. one primitive), found without any network. Every number of the table should beat it.
+
+        Only called when :attr:`floor_name` is set; the default offers none.
+        """
+        raise NotImplementedError(f"domain {self.name} has no floor baseline")
+
     # -- real data -----------------------------------------------------------------
     @property
     @abc.abstractmethod

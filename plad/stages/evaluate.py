@@ -7,7 +7,10 @@ shapes; writes to ``results/eval/<method>/<domain>/`` (:mod:`plad.layout`):
 ``metrics.json`` (mean metric per split, with timing),
 ``<split>_programs.csv`` (index, metric value, program text per shape) and
 ``grid.png`` (target | reconstruction for a fixed, evenly spaced set of test
-shapes).
+shapes). Evaluating ``sp`` also scores the domain's floor baseline
+(:mod:`plad.floor`, e.g. one box per shape) on the same shapes, into
+``results/eval/floor/<domain>/`` (``metrics.json`` and the programs; a domain
+without a floor gets a ``metrics.json`` saying so).
 
 Beyond the paper (off by default, so the paper-comparable rows stay as they
 are): ``refine: true`` refines each shape's best-of-beam program with the
@@ -34,8 +37,9 @@ from plad.checkpoint import load_model, read_checkpoint
 from plad.data import load_prepared
 from plad.device import resolve_device
 from plad.domains import get_domain
+from plad.floor import evaluate_floor
 from plad.fsutil import atomic_write_text
-from plad.layout import GRID, METRICS, SP, Layout, eval_key, programs_csv
+from plad.layout import FLOOR, GRID, METRICS, SP, Layout, eval_key, programs_csv
 from plad.pictures import pair_grid, save_png
 from plad.search import infer_batched
 from plad.stages import StageContext, stage_main
@@ -73,6 +77,34 @@ def result_key(cfg: EvaluateConfig) -> str:
 def grid_indices(n: int, k: int) -> np.ndarray:
     """A fixed, evenly spaced set of k of n shapes (the same for every method)."""
     return np.unique(np.linspace(0, n - 1, num=min(k, n)).round().astype(int)) if n else np.zeros(0, int)
+
+
+def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]]) -> None:
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["index", domain.metric.name, "program"])
+    for i, (v, p) in enumerate(zip(values, programs)):
+        writer.writerow([i, f"{v:.6f}", domain.format(p)])
+    atomic_write_text(path, buf.getvalue())
+
+
+def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:
+    """The domain's floor baseline on the configured splits: ``results/eval/floor/<domain>/``."""
+    out = layout.eval_dir(FLOOR, cfg.domain)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"domain": cfg.domain, "method": FLOOR, "floor": domain.floor_name or None,
+                    "metric": domain.metric.name, "higher_is_better": domain.metric.higher_is_better}
+    for split in cfg.splits if domain.floor_name else []:
+        targets = load_prepared(layout.prepared(cfg.domain), split)
+        if cfg.limit is not None:
+            targets = targets[: cfg.limit]
+        start = time.monotonic()
+        values, programs = evaluate_floor(domain, targets)
+        report[split] = {"mean": round(float(values.mean()), 6), "n": int(len(values)),
+                         "seconds": round(time.monotonic() - start, 1)}
+        _write_programs(out / programs_csv(split), domain, values, programs)
+    atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
+    return report
 
 
 def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
@@ -121,16 +153,13 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
                    seconds_per_shape=seconds / n, network_seconds_per_shape=network / n,
                    refine_seconds_per_shape=(seconds - network) / n)
         report[split] = row
-        buf = io.StringIO()
-        writer = csv.writer(buf)
-        writer.writerow(["index", domain.metric.name, "program"])
-        for i, (v, p) in enumerate(zip(values, programs)):
-            writer.writerow([i, f"{v:.6f}", domain.format(p)])
-        atomic_write_text(out / programs_csv(split), buf.getvalue())
+        _write_programs(out / programs_csv(split), domain, values, programs)
         if split == cfg.splits[-1]:
             idx = grid_indices(len(targets), cfg.grid_shapes)
             save_png(pair_grid(targets[idx], shapes[idx]), out / GRID)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
+    if cfg.method == SP and not cfg.refine and cfg.sweep_beam is None:  # the floor is evaluate@<d>'s output
+        report[FLOOR] = evaluate_floor_splits(cfg, domain, layout)
     return report
 
 
@@ -142,6 +171,8 @@ def tracked_evaluate(cfg: EvaluateConfig, ctx: StageContext = StageContext()) ->
         report = evaluate(cfg, ctx.layout)
         run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
         run.log_metrics({f"{s}_seconds_per_shape": report[s]["seconds_per_shape"] for s in cfg.splits})
+        floor = report.get(FLOOR, {})
+        run.log_metrics({f"floor_{s}_{report['metric']}": floor[s]["mean"] for s in cfg.splits if s in floor})
         for name in [METRICS, GRID, *[programs_csv(s) for s in cfg.splits]]:
             run.log_artifact(out / name)
     return report

@@ -1,7 +1,8 @@
 """Stage ``pretrain``: supervised pretraining of p(z|x) on synthetic (shape, program) pairs.
 
 Programs come from the ``synthesize`` stage; their shapes are executed on
-the fly. Early stopping and the learning-rate schedule follow the
+the fly; batches group programs of similar length (``train.bucket_pool``,
+:mod:`plad.batching`). Early stopping and the learning-rate schedule follow the
 validation loss on the held-out synthetic programs; the greedy-decoding
 metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 
@@ -27,6 +28,7 @@ import numpy as np
 import torch
 
 from plad import distributed as dist
+from plad.batching import bucketed, trim
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
 from plad.device import resolve_device
@@ -63,8 +65,10 @@ def load_programs(path: Path) -> dict[str, torch.Tensor]:
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
-    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here."""
+    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here; the programs are cut
+    to the longest one (:func:`plad.batching.trim`)."""
     programs, lengths = split_padding(programs.to(device))
+    programs = trim(programs, lengths)
     return domain.execute(programs), programs, lengths
 
 
@@ -87,13 +91,21 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     history = out / HISTORY
     bs = cfg.train.batch_size
 
-    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+    program_lengths = (train >= 0).sum(1).numpy()
+
+    def indices(epoch: int) -> Iterator[np.ndarray]:
         # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         while True:
             perm = torch.randperm(len(train), generator=gen)
             for start in dist.chunk_starts(len(perm), bs):
-                yield make_batch(domain, train[perm[start:start + bs]], device)
+                yield perm[start:start + bs].numpy()
+
+    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+        # grouped by program length, bucket_pool of this rank's batches at a time (plad.batching)
+        rng = np.random.default_rng([cfg.seed, epoch, dist.rank()])
+        for idx in bucketed(indices(epoch), program_lengths, cfg.train.bucket_pool, rng):
+            yield make_batch(domain, train[torch.from_numpy(idx)], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
     metric = domain.metric
@@ -129,7 +141,9 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
-                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum())}
+                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
+                   # buckets change the batches (plain batches keep the fingerprint of earlier versions)
+                   **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {})}
     last = out / LAST
     if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history

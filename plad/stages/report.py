@@ -31,6 +31,8 @@ from plad.report import (
     amortization_png,
     beyond_markdown,
     convergence_png,
+    floor_from_files,
+    floor_from_mlflow,
     from_files,
     from_mlflow,
     table_markdown,
@@ -105,7 +107,11 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         raise DataError(where, f"no test evaluation for {', '.join(missing)}")
     out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
-    table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile)
+    if cfg.source == "mlflow":
+        floors = {d: floor_from_mlflow(d) for d in cfg.domains}
+    else:
+        floors = {d: floor_from_files(d, layout) for d in cfg.domains}
+    table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile, floors)
     beyond = {d: timed_from_files(d, cfg.beyond, layout) for d in cfg.domains}
     if cfg.beyond:
         table += "\n" + beyond_markdown(beyond, cfg.beyond)
@@ -119,7 +125,8 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
     for d, rs in results.items():
-        entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs}}
+        entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs},
+                 "floor": floors[d]}
         best = champion(cfg, d, rs)
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}

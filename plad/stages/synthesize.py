@@ -2,7 +2,8 @@
 
 Writes ``data/synthetic/<domain>.npz`` (:mod:`plad.layout`) with ``train``/``val`` token arrays
 (N, max_len) int16 padded with -1, drawn with a fixed seed (train and val
-from independent streams). Shapes are not stored: the executor renders them
+from independent streams) and rewritten into the domain's canonical form
+(:meth:`plad.domains.base.Domain.canonical`). Shapes are not stored: the executor renders them
 on the fly far faster than they could be read back.
 """
 from __future__ import annotations
@@ -47,7 +48,9 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
     for split, n, rng in (("val", cfg.val_programs, val_rng), ("train", cfg.train_programs, train_rng)):
         parts = []
         for start in tqdm(range(0, n, chunk), desc=f"synthesize {split}", unit="chunk", disable=None):
-            parts.append(to_array(domain.sample(min(chunk, n - start), rng), domain.tokens.max_len))
+            # labels in the domain's canonical form: the same shapes, no free choices left to guess
+            programs = [domain.canonical(p) for p in domain.sample(min(chunk, n - start), rng)]
+            parts.append(to_array(programs, domain.tokens.max_len))
         arrays[split] = np.concatenate(parts) if parts else np.zeros((0, domain.tokens.max_len), np.int16)
     atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)

@@ -28,6 +28,7 @@ from plad.layout import (
     AMORTIZATION_TABLE,
     BEST,
     CONVERGENCE,
+    FLOOR,
     GRID,
     HISTORY,
     LAST,
@@ -291,8 +292,11 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
                               domain)
         splits = p["evaluate"][domain]["splits"]
         model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
-        return rel([model, layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / GRID,
-                                                           out / METRICS])
+        outs = [*(out / programs_csv(s) for s in splits), out / GRID, out / METRICS]
+        if method == SP:   # the floor baseline is evaluated with SP
+            floor = layout.eval_dir(FLOOR, domain)
+            outs += [*(floor / programs_csv(s) for s in splits), floor / METRICS]
+        return rel([model, layout.prepared(domain)]), rel(outs)
     if stage.group == "finetune":
         return rel([layout.model(domain), layout.prepared(domain)]), \
             rel([layout.finetune_dir(domain, method), layout.finetune_summary(domain, method)])

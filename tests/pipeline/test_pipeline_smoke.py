@@ -121,7 +121,10 @@ def test_smoke_repro_writes_the_whole_table(smoke_run):
     table = (work / "results" / "table.md").read_text()
     main = table.split("## Fine-tuning runs")[0]
     rows = [line.split("|")[1].strip() for line in main.splitlines() if line.startswith("| ") and "---" not in line]
-    assert rows == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS"]
+    assert rows == ["method", "SP", "RL", "WS", "ST", "LEST", "LEST+ST", "LEST+ST+WS",
+                    "Floor: one primitive (2D CSG), one box (3D CSG, ShapeAssembly)"]
+    floor_row = next(line for line in main.splitlines() if line.startswith("| Floor"))
+    assert "—" not in floor_row.split("|")[2] + floor_row.split("|")[4] + floor_row.split("|")[6]   # measured
     assert "2D CSG: chamfer" in main and "3D CSG: iou x100" in main and "ShapeAssembly: iou x100" in main
     assert "| LEST+ST | " in table.split("all-time vs per-round")[1]
     lines = {line.split("|")[1].strip(): line for line in main.splitlines() if line.startswith("| ")}

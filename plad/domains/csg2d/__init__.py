@@ -61,6 +61,21 @@ class CSG2D(Domain):
     def sample(self, n: int, generator: np.random.Generator) -> list[list[int]]:
         return sample_programs(self.executor, n, generator)
 
+    def canonical(self, ids: Sequence[int]) -> list[int]:
+        """Operands of ``+`` and ``*`` in a fixed order (:mod:`.canonical`); every draw token draws its own bitmap."""
+        from plad.domains.csg2d.canonical import canonical_program
+
+        return canonical_program(ids)
+
+    floor_name = "one primitive"
+
+    def floor(self, targets: np.ndarray) -> list[list[int]]:
+        """One draw token per target: the one with the best Chamfer distance (:func:`.canonical.one_primitive`)."""
+        from plad.domains.csg2d.canonical import one_primitive
+
+        draws = np.array([i for i, t in enumerate(self.tokens.tokens) if t.kind == "draw"])
+        return one_primitive(targets, self.executor.bitmaps, draws)
+
     @property
     def targets(self) -> TargetSource:
         """CSGNet's CAD drawings."""

@@ -70,6 +70,21 @@ class CSG3D(Domain):
 
         return sample_programs(self.executor, n, generator)
 
+    def canonical(self, ids: Sequence[int]) -> list[int]:
+        """Cuboid and ellipsoid parameters snapped to one representative of the ones drawing the same voxels,
+        union/inter operands ordered (:mod:`.canonical`)."""
+        from plad.domains.csg3d.canonical import canonical_program
+
+        return canonical_program(ids)
+
+    floor_name = "one box"
+
+    def floor(self, targets: np.ndarray) -> list[list[int]]:
+        """One cuboid per target: the tightest axis-aligned box around it (:func:`.canonical.one_box`)."""
+        from plad.domains.csg3d.canonical import one_box
+
+        return one_box(targets)
+
     @property
     def targets(self) -> TargetSource:
         """The PartNet shapes (executed ShapeAssembly programs), voxelized at 32^3."""

@@ -115,6 +115,20 @@ class ShapeAssembly(Domain):
 
         return sample_programs(self, n, generator)
 
+    # canonical(): the default, the program itself. No choice of this language is free: the two Attaches of a
+    # part run in order (the first translates, the second scales and turns), Squeeze's two targets play
+    # different roles (the named face against the first), a Reflect or Translate copy re-solves the moves in
+    # order, and every number moves or sizes a cuboid and so places what is attached to it: numbers that
+    # draw the same voxels do so only in context (docs/shapeassembly.md, "The discretized language").
+
+    floor_name = "one box"
+
+    def floor(self, targets: np.ndarray) -> list[list[int]]:
+        """One cuboid per target, centred and sized to its tight box (:func:`.floor.one_box`)."""
+        from plad.domains.shapeassembly.floor import one_box
+
+        return one_box(self, targets)
+
     @property
     def targets(self) -> TargetSource:
         """The PartNet shapes, the programs this language was discretized from, voxelized at 32^3."""
