@@ -28,14 +28,15 @@ import numpy as np
 import torch
 
 from plad.domains import get_domain
+from plad.errors import RunFailure
 from plad.fsutil import atomic_write
 from plad.model import ModelConfig, PLADNet
 
 FORMAT = "plad-checkpoint-1"
 
 
-class CheckpointError(Exception):
-    """A checkpoint cannot be used; the message is one line naming the file."""
+class CheckpointError(RunFailure):
+    """A checkpoint cannot be used; the message is one line naming the file (exit status 1)."""
 
 
 #: how :func:`read_checkpoint` tells the user to convert a checkpoint of an older version

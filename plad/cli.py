@@ -12,8 +12,10 @@
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
 types, its export formats) it declares itself (:class:`plad.domains.base.Domain`).
-Errors in the user's input are one line on stderr and a non-zero status
-(2 for a bad program or file, 1 for missing data), never a traceback.
+Errors are one line on stderr, never a traceback, with the exit status of
+:mod:`plad.errors`: 0 ok, 1 a failure of the run or its data (a missing
+dataset or model store), 2 bad usage or input (an argument, a program, an
+input file).
 """
 from __future__ import annotations
 
@@ -23,14 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-
-class UsageError(Exception):
-    """A problem with the user's input; printed as one line, exit status 2."""
+from plad.errors import BadInput
 
 
-def _fail(message: str, status: int) -> int:
-    print(f"plad: error: {message}", file=sys.stderr)
-    return status
+class UsageError(BadInput):
+    """A problem with the user's input; printed as one line, exit status 2 (:mod:`plad.errors`)."""
 
 
 # ---- shape files -------------------------------------------------------------------
@@ -65,24 +64,20 @@ def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
 
 
 # ---- commands --------------------------------------------------------------------------
-def _program_text(program: str) -> str:
-    """The program argument: text, or the contents of the ``.txt`` file it names."""
-    if Path(program).suffix == ".txt" and Path(program).is_file():
-        return Path(program).read_text()
-    return program
-
-
 def cmd_execute(args: argparse.Namespace) -> int:
     from plad.domains import get_domain
     from plad.grammar import ProgramError
 
     domain = get_domain(args.domain)
+    text = _program_text(args.program)
     try:
-        shown = domain.execute_text(_program_text(args.program), args.output)
+        shown = domain.execute_text(text, args.output)
     except ValueError as err:
         if isinstance(err, ProgramError):
             raise
         raise UsageError(str(err)) from None
+    except OSError as err:
+        raise UsageError(f"{args.output}: cannot write ({err.strerror or err.__class__.__name__})") from None
     # the shape itself goes to stdout when no file was asked for; otherwise stdout stays empty
     print(shown, file=sys.stdout if args.output is None else sys.stderr)
     return 0
@@ -105,7 +100,10 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise
         raise UsageError(str(err)) from None
     if args.output:
-        Path(args.output).write_text(out)
+        try:
+            Path(args.output).write_text(out)
+        except OSError as err:
+            raise UsageError(f"{args.output}: cannot write ({err.strerror or err.__class__.__name__})") from None
     else:
         sys.stdout.write(out)
     return 0
@@ -177,9 +175,20 @@ def cmd_infer(args: argparse.Namespace) -> int:
 
 
 def _program_text(text: str) -> str:
-    """A program given on the command line, or the text of a .txt file holding it."""
-    if Path(text).suffix == ".txt" and Path(text).is_file():
-        return Path(text).read_text()
+    """A program given on the command line, or the text of a .txt file holding it.
+
+    An argument that can only be a path (no whitespace, and a ``.txt`` suffix or a
+    ``/``; no domain's program text looks like that) must name a readable file.
+    """
+    path = Path(text)
+    looks_like_path = not any(c.isspace() for c in text) and (path.suffix == ".txt" or "/" in text)
+    if path.is_file() and (path.suffix == ".txt" or looks_like_path):
+        try:
+            return path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise UsageError(f"{text}: not a readable text file ({err.__class__.__name__})") from None
+    if looks_like_path:
+        raise UsageError(f"{text}: file not found")
     return text
 
 
@@ -347,17 +356,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from plad.data import DataError
+    from plad.errors import run_guarded
     from plad.grammar import ProgramError
 
-    try:
-        return args.func(args)
-    except ProgramError as err:
-        return _fail(f"invalid {args.domain} program: {err}", 2)
-    except UsageError as err:
-        return _fail(str(err), 2)
-    except DataError as err:
-        return _fail(str(err), 1)
+    def describe(err: Exception) -> str:
+        return f"invalid {args.domain} program: {err}" if isinstance(err, ProgramError) else str(err)
+
+    return run_guarded("plad", lambda: args.func(args), describe)
 
 
 if __name__ == "__main__":

@@ -27,11 +27,13 @@ from typing import Any, TypeVar
 
 import yaml
 
+from plad.errors import RunFailure
+
 T = TypeVar("T")
 
 
-class ConfigError(ValueError):
-    """A params file problem; the message is one line naming the file and key."""
+class ConfigError(RunFailure, ValueError):
+    """A params file problem; the message is one line naming the file and key (exit status 1)."""
 
 
 #: Top-level keys dvc.yaml reads itself (stage names and files); a profile cannot change them.

@@ -42,6 +42,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from plad.errors import RunFailure
 from plad.fsutil import atomic_write, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -53,8 +54,8 @@ _CHUNK = 1 << 20
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
-class DataError(Exception):
-    """A dataset file is missing or unusable. ``str(err)`` is one line: ``<path>: <problem>``."""
+class DataError(RunFailure):
+    """A dataset file is missing or unusable. ``str(err)`` is one line: ``<path>: <problem>`` (exit status 1)."""
 
     def __init__(self, path: str | os.PathLike, problem: str) -> None:
         self.path = path

@@ -42,13 +42,15 @@ from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 from skimage.filters import threshold_otsu
 
+from plad.errors import BadInput
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tif", ".tiff", ".webp")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl")
 #: longer side, in pixels, of a fitted 2D shape: the median over the CAD shapes' bounding boxes
 FIT_2D = 44
 
 
-class InputError(ValueError):
+class InputError(BadInput, ValueError):
     """A user's file cannot be used; the message is one line (without the file name)."""
 
 
