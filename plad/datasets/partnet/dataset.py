@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir
+from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir, verify_file
 from plad.datasets.partnet.execute import run_text
 from plad.datasets.partnet.voxels import RES, normalization, voxelize
 from plad.fsutil import atomic_write_text
@@ -49,6 +49,8 @@ log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
 PREPARED_NAME = "partnet_voxels.npz"
 SOURCE_NAME = "partnet_programs.tar.gz"
+#: sha256 of the published ``partnet_programs.tar.gz`` (the compressed file's bytes); checked before any use
+SOURCE_SHA256 = "957ace4785ffd6e5dc345a1fae05e571ea1d9d82aa2b14c08deb57274b4daa71"
 FOLDER = "shapeassembly_partnet"
 REPORT_NAME = "partnet_voxels.json"
 FAILURES_NAME = "partnet_failures.log"
@@ -74,7 +76,7 @@ def read_source(tar_path: str | os.PathLike) -> tuple[dict[tuple[str, str], str]
                 official[(parts[1], parts[2][:-4])] = ids
     missing = [f"splits/{c}/{s}.txt" for c in CATEGORIES for s in ("train", "val") if (c, s) not in official]
     if missing:
-        raise ValueError(f"{tar_path}: missing split lists {', '.join(missing)}")
+        raise DataError(tar_path, f"missing split lists {', '.join(missing)}")
 
     def key(cat_id: tuple[str, str]):
         return CATEGORIES.index(cat_id[0]), int(cat_id[1]) if cat_id[1].isdigit() else cat_id[1]
@@ -190,7 +192,11 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
             key = (str(path.resolve()), split)
             if key not in _SPLIT_CACHE:
                 log.info("no prepared %s; executing the %s programs of %s", PREPARED_NAME, split, path)
-                programs, assignment = read_source(path)
+                verify_file(path, SOURCE_SHA256, "PartNet")
+                try:
+                    programs, assignment = read_source(path)
+                except (tarfile.TarError, EOFError, OSError) as err:
+                    raise DataError(path, f"not a readable .tar.gz ({err.__class__.__name__}: {err})") from None
                 arrays, failures = execute_records(programs, [r for r in assignment if r[0] == split])
                 for name, reason in failures:
                     log.warning("PartNet dataset: %s failed: %s", name, reason)
@@ -203,11 +209,11 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
 
 
 def find_source(data_dir: str | os.PathLike | None) -> Path:
-    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder)."""
+    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder), sha256-verified."""
     root = resolve_data_dir(data_dir)
     for path in (root / FOLDER / SOURCE_NAME, root / SOURCE_NAME):
         if path.is_file():
-            return path
+            return verify_file(path, SOURCE_SHA256, "PartNet")
     raise DataError(root / FOLDER / SOURCE_NAME, "no such file: the PartNet ShapeAssembly programs are needed "
                                                  "for the 3D target shapes (see the datasets README)")
 
