@@ -33,34 +33,17 @@ class UsageError(BadInput):
 
 
 # ---- shape files -------------------------------------------------------------------
-def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
-    """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
-    if not path.exists():
-        raise UsageError(f"{path}: no such file")
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        from plad.inputs import InputError, read_npy
+def load_shapes(path: Path, shape: tuple[int, ...], targets: bool = True) -> np.ndarray:
+    """Shapes for scoring or search, checked at the edge by :func:`plad.inputs.read_shapes`; bool (N, *shape).
 
-        try:
-            array = read_npy(path)
-        except InputError as err:
-            raise UsageError(f"{path}: {err}") from None
-    elif suffix in (".png", ".jpg", ".jpeg", ".bmp", ".gif"):
-        from PIL import Image, UnidentifiedImageError
+    ``targets``: the empty-shape rule applies (a prediction may be empty).
+    """
+    from plad.inputs import InputError, read_shapes
 
-        try:
-            with Image.open(path) as image:
-                array = np.asarray(image.convert("L")) > 127
-        except (UnidentifiedImageError, OSError) as err:
-            raise UsageError(f"{path}: not a readable image ({err})") from None
-    else:
-        raise UsageError(f"{path}: unsupported file type {suffix or '(none)'!r}; use .png or .npy")
-    if array.shape == shape:
-        array = array[None]
-    if array.ndim != len(shape) + 1 or array.shape[1:] != shape:
-        want = "x".join(map(str, shape))
-        raise UsageError(f"{path}: expected shape ({want}) or (N, {want.replace('x', ', ')}), got {array.shape}")
-    return array
+    try:
+        return read_shapes(path, tuple(shape), targets=targets)
+    except InputError as err:
+        raise UsageError(f"{path}: {err}") from None
 
 
 # ---- commands --------------------------------------------------------------------------
@@ -115,7 +98,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     from plad.domains import get_domain
 
     domain = get_domain(args.domain)
-    pred = load_shapes(Path(args.pred), domain.shape)
+    pred = load_shapes(Path(args.pred), domain.shape, targets=False)
     target = load_shapes(Path(args.target), domain.shape)
     if len(pred) != len(target):
         raise UsageError(f"{args.pred} holds {len(pred)} shapes but {args.target} holds {len(target)}")
