@@ -128,7 +128,7 @@ def cmd_infer(args: argparse.Namespace) -> int:
     """Programs for the user's shapes; a bad file is reported and the others still processed."""
     from plad.device import default_device
     from plad.domains import get_domain
-    from plad.infer import ModelError, infer_items, resolve_model
+    from plad.infer import ModelError, infer_items, new_run_dir, resolve_model
     from plad.inputs import read_inputs
 
     domain = get_domain(args.domain)
@@ -142,7 +142,11 @@ def cmd_infer(args: argparse.Namespace) -> int:
     except ModelError as err:
         raise UsageError(str(err)) from None
     print(f"model: {source}", file=sys.stderr)
-    results = infer_items(model, domain, items, args.beam, args.out)
+    try:
+        run_dir = new_run_dir(args.out)
+    except OSError as err:
+        raise UsageError(f"--out {args.out}: cannot make this run's folder ({err.strerror or err})") from None
+    results = infer_items(model, domain, items, args.beam, run_dir)
     failed = 0
     for r in results:
         where = r.item.source if r.item.source.name.startswith(r.item.name) else f"{r.item.source} [{r.item.name}]"
@@ -152,7 +156,7 @@ def cmd_infer(args: argparse.Namespace) -> int:
         else:
             failed += 1
             print(f"plad: error: {where}: {r.item.error}", file=sys.stderr)
-    print(f"{len(results) - failed} of {len(results)} shapes inferred; outputs and results.csv in {args.out}",
+    print(f"{len(results) - failed} of {len(results)} shapes inferred; this run's rows: {run_dir / 'results.csv'}",
           file=sys.stderr)
     return 2 if failed else 0
 
@@ -312,7 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None,
                    help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion)")
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
-    p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
+    p.add_argument("--out", default="inferred",
+                   help="output folder (default: ./inferred); each run writes into its own <time>-<pid>/ in it")
     p.set_defaults(func=cmd_infer)
 
     p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")

@@ -45,6 +45,7 @@ The same rules at the edge for every command (``plad score``, ``infer``,
 """
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,7 +112,11 @@ def open_image(path: Path, mode: str) -> np.ndarray:
             return np.asarray(image.convert(mode))
     except InputError:
         raise
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError, EOFError) as err:
+    except Image.DecompressionBombError as err:   # PIL's own check at open: over twice the limit
+        found = re.search(r"\((\d+) pixels\)", str(err))
+        size = f"has {int(found.group(1)):,} pixels" if found else "is too large"
+        raise InputError(f"the image {size}, more than the limit of {MAX_PIXELS:,} pixels") from None
+    except (UnidentifiedImageError, OSError, ValueError, EOFError) as err:
         raise InputError(f"not a readable image ({err.__class__.__name__})") from None
 
 
