@@ -169,7 +169,11 @@ def _program_text(text: str) -> str:
     """
     path = Path(text)
     looks_like_path = not any(c.isspace() for c in text) and (path.suffix == ".txt" or "/" in text)
-    if path.is_file() and (path.suffix == ".txt" or looks_like_path):
+    try:
+        is_file = path.is_file()
+    except (OSError, ValueError):   # a program text too long for a file name, or holding a NUL
+        is_file = False
+    if is_file and (path.suffix == ".txt" or looks_like_path):
         try:
             return path.read_text()
         except (OSError, UnicodeDecodeError) as err:
