@@ -3,7 +3,7 @@
 Stages, flows and the report derive their files from a :class:`Layout` (a
 root, by default the working directory, plus the domain and method); params
 hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
-``tests/test_dvc_deps.py`` checks that it does::
+``tests/pipeline/test_dvc_deps.py`` checks that it does::
 
     data/prepared/<domain>.npz, <domain>.json    real target shapes (stage prepare; plus each
                                                  target source's own files, e.g. partnet_voxels.npz)

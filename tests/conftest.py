@@ -1,9 +1,14 @@
-"""Shared test helpers: where ../shared lives, and skip-or-fail for its files.
+"""Shared test set-up: the environment, the shared folder (skip or fail), the fixtures every folder uses,
+the markers that pick what a run selects.
 
 The reference fixtures and real datasets live outside the repository in
 ``../shared`` (override with ``PLAD_SHARED_DIR``). Where that folder is
 absent, tests that need it skip with a reason; under CI (``CI=true``) they
 fail instead, so a wrong path can never hide a regression.
+
+Markers (tests/README.md): ``pipeline`` (runs whole stage pipelines) and ``integration`` (starts real
+processes) are left out of the default run (pyproject's addopts); every other test is marked ``unit``
+here, so that ``-m "unit or pipeline or integration"`` (the README's CI command) is the whole suite.
 """
 from __future__ import annotations
 
@@ -64,7 +69,68 @@ def datasets_dir() -> Path:
     return require_shared("datasets")
 
 
+# -- fixtures --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def fixtures_dir() -> Path:
+    """The reference fixtures (``../shared/fixtures``); skip (or fail under CI) when missing."""
+    return require_shared("fixtures")
+
+
+@pytest.fixture(scope="session")
+def tiny_model():
+    """The factory of the tests' tiny, untrained network: ``tiny_model(domain="csg2d", seed=0, **knobs)``
+    (:func:`tests.tiny.tiny_model`)."""
+    from tests.tiny import tiny_model
+
+    return tiny_model
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint():
+    """The factory of the tiny network's checkpoints: ``tiny_checkpoint(path, domain="csg2d", seed=0)`` -> path
+    (:func:`tests.tiny.tiny_checkpoint`)."""
+    from tests.tiny import tiny_checkpoint
+
+    return tiny_checkpoint
+
+
+@pytest.fixture
+def tmp_layout(tmp_path):
+    """A :class:`plad.layout.Layout` rooted at a fresh temporary folder (nothing written yet)."""
+    from plad.layout import Layout
+
+    return Layout(tmp_path / "root")
+
+
+@pytest.fixture(scope="module")
+def csg2d_project(tmp_path_factory, datasets_dir) -> Path:
+    """A layout root, one per test module, ready to fine-tune 2D CSG: the real shapes prepared and the tiny
+    model as the pretrained one (:func:`tests.tiny.csg2d_inputs`)."""
+    from tests.tiny import csg2d_inputs
+
+    return csg2d_inputs(tmp_path_factory.mktemp("csg2d-project"), datasets_dir)
+
+
+# -- what a run selects and how it is spread over workers -------------------------------------------
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    """``-n N`` distributes whole files (``--dist loadfile``: a module fixture such as the smoke pipeline runs
+    once) in the order below, unless the command line names another ``--dist``."""
+    if getattr(config.option, "numprocesses", None) and config.option.dist == "no":
+        config.option.dist = "loadfile"
+        config.option.loadscopereorder = False
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Put files marked ``slow_first`` first, so that under ``-n 2 --dist loadfile`` one worker runs
-    the long smoke pipeline while the other runs everything else (stable order otherwise)."""
+    """Mark every test that is neither ``pipeline`` nor ``integration`` as ``unit`` (before ``-m`` selects),
+    and put files marked ``slow_first`` first, so that under ``-n 2`` one worker runs the long smoke pipeline
+    while the other runs everything else (stable order otherwise)."""
+    for item in items:
+        if not (item.get_closest_marker("pipeline") or item.get_closest_marker("integration")):
+            item.add_marker(pytest.mark.unit)
     items.sort(key=lambda item: 0 if item.get_closest_marker("slow_first") else 1)

@@ -1,28 +1,53 @@
-"""Inputs of the fine-tuning tests: the prepared 2D CAD shapes and a tiny, randomly initialized model."""
+"""The tiny, randomly initialized model of the tests, and the prepared 2D CAD project built around it.
+
+One home for the factory the test files used to copy: :func:`tiny_model` / :func:`tiny_checkpoint`
+(also the ``tiny_model`` / ``tiny_checkpoint`` fixtures of ``tests/conftest.py``).
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
-#: the tiny architecture of these tests (an untrained model: fast, and its numbers mean nothing)
-ARCHITECTURE = {"d_model": 16, "n_layers": 1, "n_heads": 2, "dim_ff": 32, "enc_channels": (4, 4, 8, 8)}
+#: the tiny architecture of the tests (an untrained model: fast, and its numbers mean nothing);
+#: dropout as :class:`plad.model.Architecture`'s default
+ARCHITECTURE = {"d_model": 32, "n_layers": 1, "n_heads": 2, "dim_ff": 64, "enc_channels": (4, 8, 8, 16)}
+
+
+def tiny_config(domain: str = "csg2d", **overrides):
+    """The :class:`plad.model.ModelConfig` of the tiny network for ``domain``; ``overrides`` replace its knobs."""
+    from plad.domains import get_domain
+    from plad.model import ModelConfig
+
+    spec = get_domain(domain)
+    base = dict(vocab_size=len(spec.tokens), max_len=spec.tokens.max_len, input_shape=spec.shape, **ARCHITECTURE)
+    return ModelConfig(**{**base, **overrides})
+
+
+def tiny_model(domain: str = "csg2d", seed: int = 0, **overrides):
+    """A tiny :class:`plad.model.PLADNet` for ``domain``, initialized from torch seed ``seed`` (training mode)."""
+    import torch
+
+    from plad.model import PLADNet
+
+    config = tiny_config(domain, **overrides)
+    torch.manual_seed(seed)
+    return PLADNet(config)
+
+
+def tiny_checkpoint(path: Path, domain: str = "csg2d", seed: int = 0, **overrides) -> Path:
+    """The tiny model (as :func:`tiny_model`) saved as a checkpoint at ``path``; ``path``."""
+    from plad.checkpoint import save_checkpoint
+    from plad.domains import get_domain
+
+    return save_checkpoint(path, tiny_model(domain, seed, **overrides), domain, get_domain(domain).tokens.names)
 
 
 def csg2d_inputs(root: Path, datasets_dir: Path) -> Path:
     """A project at layout root ``root`` (:mod:`plad.layout`) ready to fine-tune: the real 2D shapes prepared
     and, as the pretrained model, the tiny one (seed 0); ``root``."""
-    import torch
-
-    from plad.checkpoint import save_checkpoint
-    from plad.domains import get_domain
     from plad.layout import Layout
-    from plad.model import ModelConfig, PLADNet
     from plad.stages.prepare import PrepareConfig, prepare
 
     layout = Layout(root)
     prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"]), layout)
-    domain = get_domain("csg2d")
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, **ARCHITECTURE))
-    save_checkpoint(layout.model("csg2d"), model, "csg2d", domain.tokens.names)
+    tiny_checkpoint(layout.model("csg2d"), "csg2d")
     return root

@@ -20,7 +20,7 @@ Canny on a {0, 255} image
     ``m >= next`` horizontally and vertically, ``>`` on both sides diagonally)
     and the diagonal picked by the sign of dx * dy. We run it on the 0/1 image
     in int8 (the factor 255 cancels in every comparison). The result equals
-    ``cv2.Canny(img * 255, 1, 3) > 0`` bit for bit (tests/test_chamfer.py).
+    ``cv2.Canny(img * 255, 1, 3) > 0`` bit for bit (tests/plad/metrics/test_chamfer.py).
 
 Distance transform
     OpenCV 5 runs the 3x3 chamfer transform in float32 with steps
@@ -82,7 +82,7 @@ PENALTY = 16.0
 # pixel is "horizontal" when |dy| << 15 < |dx| * TG22 and "vertical" when
 # |dy| << 15 > |dx| * TG22 + (|dx| << 16). On a 0/1 image |dx|, |dy| <= 4, and on
 # that range these tests are exactly 12 |dy| < 5 |dx| and 5 |dy| > 12 |dx|
-# (tests/test_chamfer.py checks every 3 x 3 neighbourhood), which fit in int8.
+# (tests/plad/metrics/test_chamfer.py checks every 3 x 3 neighbourhood), which fit in int8.
 CANNY_TG22 = 13573
 
 UNIT_BITS = 24

@@ -11,8 +11,9 @@ from plad import loop as loop_module
 from plad.layout import Layout
 from plad.loop import JsonStore, Limits, Loop, Objective, Unit, read_state, upgrade_state, upgrade_summary
 from plad.metrics import IOU
+from tests.conftest import REPO_ROOT
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 LOSS = Objective("loss", higher_is_better=False)
 
 

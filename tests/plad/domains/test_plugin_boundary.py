@@ -8,8 +8,9 @@ import re
 from pathlib import Path
 
 from plad.domains import _REGISTRY, domain_names
+from tests.conftest import REPO_ROOT
 
-PLAD = Path(__file__).resolve().parent.parent / "plad"
+PLAD = REPO_ROOT / "plad"
 DOMAINS_DIR = PLAD / "domains"
 
 

@@ -108,7 +108,7 @@ def test_10000_sampled_programs_satisfy_the_8_voxel_rule():
     print(f"sampled 10000 programs in {elapsed:.1f} s")
 
 
-def test_dataset_build_end_to_end(tmp_path):
+def test_dataset_build_end_to_end(tmp_path, fixtures_dir):
     from plad.datasets.partnet.dataset import build_partnet_dataset, load_split, unpack
 
     tar = require_shared("datasets/shapeassembly_partnet/partnet_programs.tar.gz")
@@ -125,7 +125,7 @@ def test_dataset_build_end_to_end(tmp_path):
     val = load_split("val", tmp_path)
     assert val.shape == (3, 32, 32, 32) and val.dtype == bool
     # the fixture's first chair program is the smallest chair id of the train split
-    fixture = np.load(require_shared("fixtures/shapeassembly_reference.npz"))
+    fixture = np.load(fixtures_dir / "shapeassembly_reference.npz")
     first = [i for i, c in enumerate(fixture["category"]) if c == "chair"]
     first.sort(key=lambda i: int(fixture["program_id"][i]))
     assert ids[0] == fixture["program_id"][first[0]]
@@ -165,8 +165,8 @@ def test_target_data_missing_is_a_clear_data_error(tmp_path):
         DOMAIN.target_data("val", tmp_path)
 
 
-def test_cli_outputs_for_both_forms(tmp_path, capsys):
-    fixture = np.load(require_shared("fixtures/shapeassembly_reference.npz"))
+def test_cli_outputs_for_both_forms(tmp_path, capsys, fixtures_dir):
+    fixture = np.load(fixtures_dir / "shapeassembly_reference.npz")
     program = tmp_path / "chair.txt"
     program.write_text(str(fixture["program_text"][0]))
     assert main(["execute", "shapeassembly", str(program), "-o", str(tmp_path / "v.npy")]) == 0

@@ -17,23 +17,10 @@ PROGRAM_2D = "c(32,32,16)s(40,40,12)-$"
 PROGRAM_3D = "union cuboid 12 10 16 10 8 12 ellipsoid 20 18 16 12 12 14"
 
 
-def tiny_model(domain_name: str, seed: int = 0):
-    from plad.model import ModelConfig, PLADNet
-
-    domain = get_domain(domain_name)
-    torch.manual_seed(seed)
-    return PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                               input_shape=domain.shape, enc_channels=(4, 8, 8, 8), d_model=32,
-                               n_layers=1, n_heads=2, dim_ff=32)).eval()
-
-
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory):
-    from plad.checkpoint import save_checkpoint
-
+def checkpoints(tmp_path_factory, tiny_checkpoint):
     root = tmp_path_factory.mktemp("models")
-    return {name: save_checkpoint(root / f"{name}.pt", tiny_model(name), name, get_domain(name).tokens.names)
-            for name in ("csg2d", "csg3d")}
+    return {name: tiny_checkpoint(root / f"{name}.pt", name) for name in ("csg2d", "csg3d")}
 
 
 @pytest.fixture(scope="module")

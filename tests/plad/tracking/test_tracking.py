@@ -11,15 +11,13 @@ import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from plad import tracking
 from plad.tracking import StageRun, pipeline_tags
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
+from tests.conftest import REPO_ROOT
 
 
 @pytest.fixture(scope="session")
@@ -204,20 +202,14 @@ def test_nested_round_runs(store, client, tmp_path):
     assert client.get_run(bad.run_id).info.status == "FAILED"
 
 
-def test_log_model_register_champion_predict(store, client, tmp_path, capsys):
+def test_log_model_register_champion_predict(store, client, tmp_path, capsys, tiny_checkpoint):
     import torch
 
-    from plad.checkpoint import save_checkpoint
     from plad.domains import get_domain
     from plad.domains.base import pad_programs
-    from plad.model import ModelConfig, PLADNet
 
     domain = get_domain("csg2d")
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len,
-                                input_shape=domain.shape, enc_channels=(4, 8, 8, 8), d_model=32,
-                                n_layers=1, n_heads=2, dim_ff=32))
-    ckpt = save_checkpoint(tmp_path / "model.pt", model, "csg2d", domain.tokens.names)
+    ckpt = tiny_checkpoint(tmp_path / "model.pt", "csg2d")
     name = "plad-test-csg2d"
     with StageRun("finetune", "csg2d", {}, tmp_path / "run", method="plad") as run:
         uri = run.log_model(ckpt, registered_name=name, beam=3)
@@ -271,26 +263,17 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys):
     assert json.loads(fresh.stdout.strip().splitlines()[-1]) == list(out["program"])
 
 
-def test_a_stage_records_the_params_file_it_read(store, client, tmp_path, monkeypatch):
+def test_a_stage_records_the_params_file_it_read(store, client, tmp_path, monkeypatch, tiny_checkpoint):
     """``--params`` elsewhere than ./params.yaml: the run's tags come from that file (and its profile's)."""
-    import torch
-
-    from plad.checkpoint import save_checkpoint
     from plad.data import write_prepared
-    from plad.domains import get_domain
     from plad.layout import Layout
-    from plad.model import ModelConfig, PLADNet
     from plad.stages import evaluate
 
-    domain = get_domain("csg2d")
     layout = Layout(tmp_path / "project")
     rng = np.random.default_rng(0)
     splits = {s: rng.random((3, 64, 64)) < 0.3 for s in ("train", "val", "test")}
     write_prepared("csg2d", (64, 64), splits, layout.prepared("csg2d"), layout.prepared_summary("csg2d"))
-    torch.manual_seed(0)
-    model = PLADNet(ModelConfig(vocab_size=len(domain.tokens), max_len=domain.tokens.max_len, input_shape=domain.shape,
-                                enc_channels=(4, 4, 8, 8), d_model=16, n_layers=1, n_heads=2, dim_ff=16))
-    save_checkpoint(layout.model("csg2d"), model, "csg2d", domain.tokens.names)
+    tiny_checkpoint(layout.model("csg2d"), "csg2d")
     params = tmp_path / "elsewhere" / "other.yaml"
     (params.parent / "profiles").mkdir(parents=True)
     params.write_text("profile: tiny\nevaluate:\n  base: {beam: 1, batch_size: 3, grid_shapes: 2}\n  csg2d: {}\n")

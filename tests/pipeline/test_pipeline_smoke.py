@@ -15,7 +15,8 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 
-pytestmark = [pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed"), pytest.mark.slow_first]
+pytestmark = [pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed"), pytest.mark.pipeline,
+              pytest.mark.slow_first]
 
 
 def run(cmd, cwd, env):

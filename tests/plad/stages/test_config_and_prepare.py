@@ -1,6 +1,5 @@
 """params.yaml loading (typed, strict) and the ``prepare`` stage."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,9 @@ from plad.datasets.cad import load_cad
 from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, main, prepare
 from plad.stages.pretrain import PretrainConfig
+from tests.conftest import REPO_ROOT
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 
 
 def test_repository_params_load():

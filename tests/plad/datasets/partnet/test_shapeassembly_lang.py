@@ -6,12 +6,11 @@ from plad.datasets.partnet.execute import BlockState, Cuboid, _nearest_pair, nea
 from plad.datasets.partnet.lang import SAParseError, parse_program
 from plad.datasets.partnet.voxels import normalization, voxelize
 from plad.grammar import ProgramError
-from tests.conftest import require_shared
 
 
 @pytest.fixture(scope="module")
-def fixture():
-    return np.load(require_shared("fixtures/shapeassembly_reference.npz"))
+def fixture(fixtures_dir):
+    return np.load(fixtures_dir / "shapeassembly_reference.npz")
 
 
 @pytest.fixture(scope="module")

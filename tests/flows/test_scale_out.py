@@ -21,7 +21,6 @@ import pytest
 
 from plad.layout import Layout
 from tests.procs import child_env, children, free_port, group, left_behind, start, stop, tail, wait_http
-from tests.tiny import csg2d_inputs
 
 pytestmark = pytest.mark.integration
 
@@ -62,10 +61,10 @@ flows:
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory, datasets_dir) -> Path:
+def smoke(csg2d_project) -> Path:
     """The layout root of a project with the prepared 2D shapes and a tiny pretrained model (random weights);
     each flow run writes under its ``runs/flows/<run name>/``."""
-    return csg2d_inputs(tmp_path_factory.mktemp("scale-out"), datasets_dir)
+    return csg2d_project
 
 
 def params(out: Path, dask: str | None = None) -> Path:

@@ -10,20 +10,12 @@ from plad.domains.base import pad_programs
 from plad.job import Job
 from plad.loop import budget_seconds
 from plad.methods import MethodConfig
-from plad.model import ModelConfig, PLADNet
 from plad.pbest import PBest
 from plad.rounds import RoundsConfig, run_rounds
 from plad.train import TrainConfig
 from plad.ws import WSConfig, new_generator, sample_dataset, train_generator
 
 DOMAIN = get_domain("csg2d")
-
-
-def tiny_model(seed=0):
-    torch.manual_seed(seed)
-    return PLADNet(ModelConfig(vocab_size=len(DOMAIN.tokens), max_len=DOMAIN.tokens.max_len,
-                               input_shape=DOMAIN.shape, d_model=32, n_layers=1, n_heads=2, dim_ff=64,
-                               enc_channels=(4, 8, 8, 16)))
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +38,7 @@ def rounds(model, shapes, method, cfg, out, max_minutes=None, pbest_mode="all-ti
     return run_rounds(job, MethodConfig(method, pbest_mode), cfg)
 
 
-def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
+def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes, tiny_model):
     summary = rounds(tiny_model(), shapes, "lest+st", config(), tmp_path)
     assert summary["units"] == 2 and summary["unit_name"] == "round" and summary["stopped"] == "max_rounds"
     state = json.loads((tmp_path / "state.json").read_text())
@@ -61,13 +53,13 @@ def test_rounds_update_pbest_and_write_their_state(tmp_path, shapes):
     assert np.array_equal(again, pbest.executions)
 
 
-def test_the_method_sets_the_pbest_mode(tmp_path, shapes):
+def test_the_method_sets_the_pbest_mode(tmp_path, shapes, tiny_model):
     rounds(tiny_model(), shapes, "lest+st", config(rounds=1), tmp_path, pbest_mode="per-round")
     assert PBest.load(tmp_path / "pbest.npz", DOMAIN.metric).mode == "per-round"
 
 
 @pytest.mark.parametrize("method", ["lest+st", "lest+st+ws"])
-def test_resume_after_a_kill_continues_identically(tmp_path, shapes, method):
+def test_resume_after_a_kill_continues_identically(tmp_path, shapes, method, tiny_model):
     straight = rounds(tiny_model(), shapes, method, config(rounds=2), tmp_path / "straight")
     rounds(tiny_model(), shapes, method, config(rounds=1), tmp_path / "killed")  # stops after round 1
     # the same command again, with another initial model: everything comes from disk
@@ -83,7 +75,7 @@ def test_resume_after_a_kill_continues_identically(tmp_path, shapes, method):
     assert np.array_equal(pa.programs, pb.programs)
 
 
-def test_wake_sleep_generator_learns_and_samples_unique_nonempty_programs(shapes):
+def test_wake_sleep_generator_learns_and_samples_unique_nonempty_programs(shapes, tiny_model):
     train, _ = shapes
     model = tiny_model()
     pbest = PBest(len(train), DOMAIN.shape, DOMAIN.tokens.max_len, DOMAIN.metric)
@@ -105,7 +97,7 @@ def test_wake_sleep_generator_learns_and_samples_unique_nonempty_programs(shapes
     assert np.array_equal(DOMAIN.execute(pad_programs(rows)).numpy(), executions)
 
 
-def test_wake_sleep_rounds_write_generator_and_samples(tmp_path, shapes):
+def test_wake_sleep_rounds_write_generator_and_samples(tmp_path, shapes, tiny_model):
     summary = rounds(tiny_model(), shapes, "lest+st+ws", config(rounds=1), tmp_path)
     assert summary["units"] == 1
     assert (tmp_path / "ws_generator.pt").exists() and (tmp_path / "ws_round_001.npz").exists()
@@ -113,6 +105,6 @@ def test_wake_sleep_rounds_write_generator_and_samples(tmp_path, shapes):
     assert row["ws_unique"] > 0 and 0 <= row["ws_empty_share"] <= 1
 
 
-def test_budget_stops_rounds(tmp_path, shapes):
+def test_budget_stops_rounds(tmp_path, shapes, tiny_model):
     summary = rounds(tiny_model(), shapes, "st", config(rounds=50), tmp_path, max_minutes=1e-4)
     assert summary["stopped"] == "budget" and summary["units"] == 1

@@ -37,9 +37,10 @@ from plad.layout import (
     Layout,
     programs_csv,
 )
-from tests.test_plugin_boundary import imported_modules
+from tests.conftest import REPO_ROOT
+from tests.plad.domains.test_plugin_boundary import imported_modules
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 PACKAGES = ("plad", "flows")   # where the project's code lives; anything else is a third-party import
 
 pytestmark = pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed")

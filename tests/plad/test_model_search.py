@@ -11,14 +11,9 @@ from plad.domains.base import pad_programs
 from plad.model import Architecture, ModelConfig, PLADNet
 from plad.search import beam_search, greedy_decode, infer_programs
 from plad.train import TrainConfig, fit
+from tests.tiny import tiny_config
 
 DOMAIN = get_domain("csg2d")
-
-
-def tiny_config(**kw) -> ModelConfig:
-    base = dict(vocab_size=len(DOMAIN.tokens), max_len=DOMAIN.tokens.max_len, input_shape=DOMAIN.shape,
-                d_model=32, n_layers=1, n_heads=2, dim_ff=64, enc_channels=(4, 8, 8, 16), dropout=0.1)
-    return ModelConfig(**{**base, **kw})
 
 
 def synthetic_batches(programs, batch_size=64, seed=0):
@@ -233,8 +228,7 @@ def test_encoder_options_normalization_coordinates_and_kernel():
 
 def test_checkpoint_with_encoder_options_round_trips(tmp_path):
     csg3d = get_domain("csg3d")
-    cfg = tiny_config(vocab_size=len(csg3d.tokens), max_len=csg3d.tokens.max_len, input_shape=csg3d.shape,
-                      enc_norm=True, coord_channels=True, enc_kernel=3)
+    cfg = tiny_config("csg3d", enc_norm=True, coord_channels=True, enc_kernel=3)
     model = PLADNet(cfg)
     model.train()(torch.rand(8, 32, 32, 32) > 0.5, torch.full((8, 1), cfg.bos))  # moves the running statistics
     path = save_checkpoint(tmp_path / "m.pt", model, "csg3d", csg3d.tokens.names)

@@ -35,10 +35,10 @@ def test_domains_on_one_source_share_one_build(tmp_path, datasets_dir):
     assert not any(np.array_equal(a, b) for a in val for b in test)
 
 
-def test_a_limit_keeps_the_first_shapes_of_each_split(tmp_path, datasets_dir):
-    result = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), limit={"cad": 5}), Layout(tmp_path))
+def test_a_limit_keeps_the_first_shapes_of_each_split(tmp_layout, datasets_dir):
+    result = prepare(PrepareConfig(domains=["csg2d"], data_dir=str(datasets_dir), limit={"cad": 5}), tmp_layout)
     assert result["domains"]["csg2d"]["test_count"] == 5
-    assert np.array_equal(load_prepared(Layout(tmp_path).prepared("csg2d"), "test"), load_cad(datasets_dir, "test")[:5])
+    assert np.array_equal(load_prepared(tmp_layout.prepared("csg2d"), "test"), load_cad(datasets_dir, "test")[:5])
 
 
 def test_groups_by_source_and_one_config_per_source():
@@ -48,9 +48,9 @@ def test_groups_by_source_and_one_config_per_source():
     assert [(p.domains, p.limit) for p in parts] == [(["csg2d"], {}), (["csg3d", "shapeassembly"], {"partnet": 3})]
 
 
-def test_a_limit_of_a_source_no_domain_uses_is_an_error(tmp_path):
+def test_a_limit_of_a_source_no_domain_uses_is_an_error(tmp_layout):
     with pytest.raises(ConfigError, match="'partnet' is not the target source of a configured domain"):
-        prepare(PrepareConfig(domains=["csg2d"], limit={"partnet": 3}), Layout(tmp_path))
+        prepare(PrepareConfig(domains=["csg2d"], limit={"partnet": 3}), tmp_layout)
 
 
 def test_missing_or_broken_tarball_is_a_clear_error(tmp_path):

@@ -1,8 +1,6 @@
 """Program rewriting and search (plad.rewrite): properties on every domain, seeded."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -14,6 +12,7 @@ from plad.rewrite.evaluate import Scorer, oriented
 from plad.rewrite.insert import insert
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import prune
+from tests.conftest import REPO_ROOT
 
 # programs per domain for the property tests (ShapeAssembly executes ~2 ms per program in Python)
 SIZES = {"csg2d": 24, "csg3d": 16, "shapeassembly": 5}
@@ -165,7 +164,7 @@ def test_insertion_improves_an_empty_or_one_primitive_start(name):
 
 def test_rewriters_are_generic():
     """Code outside plad/domains never names a domain."""
-    root = Path(__file__).resolve().parents[1] / "plad" / "rewrite"
+    root = REPO_ROOT / "plad" / "rewrite"
     for path in root.glob("*.py"):
         text = path.read_text()
         for name in domain_names():

@@ -25,7 +25,6 @@ from plad.metrics.chamfer import (  # noqa: E402
     chamfer_against,
     distance_maps,
 )
-from tests.conftest import require_shared  # noqa: E402
 from tests.reference.chamfer_cv import canny_cv, chamfer_cv, distance_cv  # noqa: E402
 
 SIZE = 64
@@ -219,8 +218,8 @@ def test_distance_steps_are_opencv_float32_weights():
 # --- Chamfer distance -----------------------------------------------------------------------
 
 
-def test_fixture_reproduced():
-    data = np.load(require_shared("fixtures/csgnet_chamfer_reference.npz"))
+def test_fixture_reproduced(fixtures_dir):
+    data = np.load(fixtures_dir / "csgnet_chamfer_reference.npz")
     ours = chamfer(torch.from_numpy(data["pred"]), torch.from_numpy(data["target"])).numpy()
     assert ours.dtype == np.float64 and ours.shape == data["chamfer"].shape
     err = np.abs(ours - data["chamfer"])

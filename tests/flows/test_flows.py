@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from plad.layout import Layout
-from tests.tiny import csg2d_inputs
 
 
 @pytest.fixture(scope="module")
@@ -68,9 +67,8 @@ flows:
 
 
 @pytest.fixture(scope="module")
-def smoke_params(tmp_path_factory, datasets_dir):
-    root = csg2d_inputs(tmp_path_factory.mktemp("flow"), datasets_dir)
-    params = root / "params.yaml"
+def smoke_params(csg2d_project):
+    params = csg2d_project / "params.yaml"
     params.write_text(SMOKE_PARAMS)
     return params
 

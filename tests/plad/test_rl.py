@@ -9,17 +9,9 @@ from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.job import Job
 from plad.loop import budget_seconds
-from plad.model import ModelConfig, PLADNet
 from plad.rl import Reinforce, RLConfig, masked_log_probs, reward, run_rl, sample_programs
 
 DOMAIN = get_domain("csg2d")
-
-
-def tiny_model():
-    torch.manual_seed(0)
-    return PLADNet(ModelConfig(vocab_size=len(DOMAIN.tokens), max_len=DOMAIN.tokens.max_len,
-                               input_shape=DOMAIN.shape, d_model=32, n_layers=1, n_heads=2, dim_ff=64,
-                               enc_channels=(4, 8, 8, 16)))
 
 
 def targets(n=8):
@@ -33,7 +25,7 @@ def test_2d_reward_is_csgnets_transform_of_the_chamfer_distance():
     assert abs(float(r[1]) - (1 - 1 / (64 * math.sqrt(2))) ** 20) < 1e-12
 
 
-def test_sampled_programs_are_valid_and_log_probs_match_the_decoder():
+def test_sampled_programs_are_valid_and_log_probs_match_the_decoder(tiny_model):
     model = tiny_model().eval()
     x = targets()
     tokens, lengths = sample_programs(model, DOMAIN, x, torch.Generator().manual_seed(0))
@@ -55,7 +47,7 @@ def test_sampled_programs_are_valid_and_log_probs_match_the_decoder():
     assert torch.allclose(teacher, total, atol=1e-4)
 
 
-def test_one_update_moves_the_weights_and_the_baseline():
+def test_one_update_moves_the_weights_and_the_baseline(tiny_model):
     model = tiny_model()
     learner = Reinforce(model, DOMAIN, RLConfig(lr=0.01, batch_size=8, baseline_alpha=0.7), seed=0)
     before = [p.detach().clone() for p in model.parameters()]
@@ -72,14 +64,14 @@ def rl_config(epochs):
     return RLConfig(lr=1e-2, batch_size=8, steps_per_epoch=2, max_epochs=epochs, val_beam=2, val_batch=8)
 
 
-def rl(train, val, cfg, out, seed=0, max_minutes=None):
-    return run_rl(Job(tiny_model(), DOMAIN, train, val, out, seed=seed, budget_seconds=budget_seconds(max_minutes)),
+def rl(model, train, val, cfg, out, seed=0, max_minutes=None):
+    return run_rl(Job(model, DOMAIN, train, val, out, seed=seed, budget_seconds=budget_seconds(max_minutes)),
                   cfg)
 
 
-def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path):
+def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path, tiny_model):
     train, val = targets(24).numpy(), targets(8).numpy()
-    summary = rl(train, val, rl_config(3), tmp_path / "straight", seed=1)
+    summary = rl(tiny_model(), train, val, rl_config(3), tmp_path / "straight", seed=1)
     assert summary["units"] == 3 and summary["unit_name"] == "epoch" and summary["stopped"] == "max_epochs"
     state = json.loads((tmp_path / "straight" / "state.json").read_text())
     vals = [r["val"] for r in state["history"]]
@@ -87,9 +79,9 @@ def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path):
     assert state["best"] == vals[state["best_unit"]] and state["best"] <= vals[0]
     best = torch.load(tmp_path / "straight" / "best.pt", weights_only=False)
     assert best["unit"] == state["best_unit"]
-    rl(train, val, rl_config(1), tmp_path / "killed", seed=1)
+    rl(tiny_model(), train, val, rl_config(1), tmp_path / "killed", seed=1)
     torch.manual_seed(123)  # the resumed run must not depend on the global RNG
-    rl(train, val, rl_config(3), tmp_path / "killed", seed=1)
+    rl(tiny_model(), train, val, rl_config(3), tmp_path / "killed", seed=1)
     a = torch.load(tmp_path / "straight" / "learner.pt", weights_only=False)
     b = torch.load(tmp_path / "killed" / "learner.pt", weights_only=False)
     for k in a["state_dict"]:
@@ -97,7 +89,7 @@ def test_rl_training_selects_on_validation_and_resumes_identically(tmp_path):
     assert a["baseline"] == b["baseline"]
 
 
-def test_rl_budget_stops_after_one_epoch(tmp_path):
+def test_rl_budget_stops_after_one_epoch(tmp_path, tiny_model):
     train, val = targets(24).numpy(), targets(8).numpy()
-    summary = rl(train, val, rl_config(100), tmp_path, max_minutes=1e-5)
+    summary = rl(tiny_model(), train, val, rl_config(100), tmp_path, max_minutes=1e-5)
     assert summary["stopped"] == "budget" and summary["units"] == 1

@@ -7,8 +7,9 @@ import pytest
 import yaml
 
 from plad.config import BASE, PER_DOMAIN, STAGE_SECTIONS, ConfigError, load_params, merge, section
+from tests.conftest import REPO_ROOT
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 PROFILES = ("cpu", "smoke", "paper")
 
 
