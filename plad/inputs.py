@@ -46,6 +46,7 @@ The same rules at the edge for every command (``plad score``, ``infer``,
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -104,7 +105,10 @@ def open_image(path: Path, mode: str) -> np.ndarray:
     """The image's pixels converted to PIL ``mode``; too large or unreadable images are an :class:`InputError`."""
     check_file(path)
     try:
-        with Image.open(path) as image:   # reads the header only: the size is known before decoding
+        with warnings.catch_warnings():   # PIL warns about what is refused here anyway
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = Image.open(path)      # reads the header only: the size is known before decoding
+        with image:
             w, h = image.size
             if w * h > MAX_PIXELS:
                 raise InputError(f"the image is {w}x{h} pixels, more than the limit of {MAX_PIXELS:,} pixels")

@@ -6,7 +6,6 @@ the run directory and the MLflow store as they were. Budget: well under a minute
 """
 from __future__ import annotations
 
-import os
 import random
 import shutil
 from pathlib import Path
@@ -16,9 +15,9 @@ import pytest
 
 from plad.cli import main
 from plad.domains import domain_names, get_domain
+from tests.conftest import REPO_ROOT, require_shared
 
-REPO = Path(__file__).resolve().parent.parent
-SHARED = Path(os.environ.get("PLAD_SHARED_DIR", "/work/shared"))
+REPO = REPO_ROOT
 SEED = 18
 NASTY = ["-5", "0", "-0.5", ".nan", ".inf", "-.inf", "1e309", "csg4d", "[]", "{}", "null", "true", "'x'",
          "[1, -1]", "{a: 1}", "!!python/object/apply:os.system ['true']", "]", "{", "3", "2.5", "''",
@@ -28,9 +27,7 @@ NASTY = ["-5", "0", "-0.5", ".nan", ".inf", "-.inf", "1e309", "csg4d", "[]", "{}
 def programs(domain: str) -> list[str]:
     """Valid program texts of a domain: a few executions of its own token sampler's programs, or a fixture."""
     if domain == "shapeassembly":
-        path = SHARED / "fixtures" / "shapeassembly_reference.npz"
-        if not path.is_file():
-            pytest.skip(f"{path} is missing")
+        path = require_shared("fixtures/shapeassembly_reference.npz")
         return [str(t) for t in np.load(path)["program_text"][:3]]
     return {"csg2d": ["c(32,32,16)s(40,40,12)-$", "t(20,30,10)c(40,40,8)+$"],
             "csg3d": ["union cuboid 12 10 16 10 8 12 ellipsoid 20 18 16 12 12 14"]}.get(domain) or []

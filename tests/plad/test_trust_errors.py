@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 
 from plad.cli import main
+from tests.conftest import shared_dir
 
-TARBALL = Path("/work/shared/datasets/shapeassembly_partnet/partnet_programs.tar.gz")
+TARBALL = shared_dir() / "datasets" / "shapeassembly_partnet" / "partnet_programs.tar.gz"
 
 
 def one_error_line(err: str, prefix: str) -> str:

@@ -16,8 +16,9 @@ import torch
 
 from plad.cli import main
 from plad.domains import get_domain
+from tests.conftest import REPO_ROOT
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 
 
 def _tiny(domain_name: str):
