@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from prefect import flow, task
 from prefect.cache_policies import NONE
 
 from plad.config import ConfigError, load_params, section
+from plad.errors import run_guarded
 from plad.layout import SP, Layout
 from plad.stages import StageContext
 
@@ -158,7 +160,8 @@ def deployment(params_path: str, root: str = ".", profile: str | None = None):
     return finetune_flow.to_deployment(name=fcfg.deployment, cron=fcfg.cron, parameters=parameters)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
+    """The command line; the exit statuses of :mod:`plad.errors` (a params or data problem: one line, 1)."""
     parser = argparse.ArgumentParser(prog="python -m flows.finetune", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
     parser.add_argument("--profile", help="apply profiles/<PROFILE>.yaml instead of the one the params name "
@@ -171,17 +174,22 @@ def main(argv: list[str] | None = None) -> None:
                         help="serve the deployment on its cron (needs a running `prefect server start`)")
     args = parser.parse_args(argv)
     if args.serve:
-        from prefect import serve
         from prefect.settings import PREFECT_API_URL
 
         if not PREFECT_API_URL.value():   # a temporary server would start, serve nothing and keep no schedule
             parser.error("--serve needs a running Prefect server: start `prefect server start` and set "
                          "PREFECT_API_URL=http://127.0.0.1:4200/api (README, Prefect)")
 
-        serve(deployment(args.params, args.root, args.profile))
-    else:
-        print(finetune_flow(args.params, args.methods, args.run_name, args.root, args.profile))
+    def go() -> None:
+        if args.serve:
+            from prefect import serve
+
+            serve(deployment(args.params, args.root, args.profile))
+        else:
+            print(finetune_flow(args.params, args.methods, args.run_name, args.root, args.profile))
+
+    return run_guarded("flows.finetune", go)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

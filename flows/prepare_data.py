@@ -10,10 +10,12 @@ task, so a source is built once).
 from __future__ import annotations
 
 import argparse
+import sys
 
 from prefect import flow, task
 
 from plad.config import load_params, section
+from plad.errors import run_guarded
 from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, prepare, prepare_sources
 
@@ -41,4 +43,5 @@ if __name__ == "__main__":
     parser.add_argument("--root", default=".",
                         help="root folder of the artifacts (plad.layout; default: the working directory)")
     args = parser.parse_args()
-    print(prepare_data(args.params, args.root))
+    # the exit statuses of plad.errors: a params or data problem is one line and status 1
+    sys.exit(run_guarded("flows.prepare_data", lambda: print(prepare_data(args.params, args.root))))

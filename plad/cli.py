@@ -13,8 +13,10 @@
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
 types, its export formats) it declares itself (:class:`plad.domains.base.Domain`).
-Errors in the user's input are one line on stderr and a non-zero status
-(2 for a bad program or file, 1 for missing data), never a traceback.
+Errors are one line on stderr, never a traceback, with the exit status of
+:mod:`plad.errors`: 0 ok, 1 a failure of the run or its data (a missing
+dataset or model store), 2 bad usage or input (an argument, a program, an
+input file).
 """
 from __future__ import annotations
 
@@ -29,68 +31,42 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-
-class UsageError(Exception):
-    """A problem with the user's input; printed as one line, exit status 2."""
+from plad.errors import BadInput
 
 
-def _fail(message: str, status: int) -> int:
-    print(f"plad: error: {message}", file=sys.stderr)
-    return status
+class UsageError(BadInput):
+    """A problem with the user's input; printed as one line, exit status 2 (:mod:`plad.errors`)."""
 
 
 # ---- shape files -------------------------------------------------------------------
-def load_shapes(path: Path, shape: tuple[int, ...]) -> np.ndarray:
-    """Read shapes for scoring: a PNG (one shape) or a .npy of (N, *shape) or (*shape); -> bool (N, *shape)."""
-    import numpy as np
+def load_shapes(path: Path, shape: tuple[int, ...], targets: bool = True) -> np.ndarray:
+    """Shapes for scoring or search, checked at the edge by :func:`plad.inputs.read_shapes`; bool (N, *shape).
 
-    if not path.exists():
-        raise UsageError(f"{path}: no such file")
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        from plad.inputs import InputError, read_npy
+    ``targets``: the empty-shape rule applies (a prediction may be empty).
+    """
+    from plad.inputs import InputError, read_shapes
 
-        try:
-            array = read_npy(path)
-        except InputError as err:
-            raise UsageError(f"{path}: {err}") from None
-    elif suffix in (".png", ".jpg", ".jpeg", ".bmp", ".gif"):
-        from PIL import Image, UnidentifiedImageError
-
-        try:
-            with Image.open(path) as image:
-                array = np.asarray(image.convert("L")) > 127
-        except (UnidentifiedImageError, OSError) as err:
-            raise UsageError(f"{path}: not a readable image ({err})") from None
-    else:
-        raise UsageError(f"{path}: unsupported file type {suffix or '(none)'!r}; use .png or .npy")
-    if array.shape == shape:
-        array = array[None]
-    if array.ndim != len(shape) + 1 or array.shape[1:] != shape:
-        want = "x".join(map(str, shape))
-        raise UsageError(f"{path}: expected shape ({want}) or (N, {want.replace('x', ', ')}), got {array.shape}")
-    return array
+    try:
+        return read_shapes(path, tuple(shape), targets=targets)
+    except InputError as err:
+        raise UsageError(f"{path}: {err}") from None
 
 
 # ---- commands --------------------------------------------------------------------------
-def _program_text(program: str) -> str:
-    """The program argument: text, or the contents of the ``.txt`` file it names."""
-    if Path(program).suffix == ".txt" and Path(program).is_file():
-        return Path(program).read_text()
-    return program
-
-
 def cmd_execute(args: argparse.Namespace) -> int:
     from plad.domains import get_domain
     from plad.grammar import ProgramError
 
     domain = get_domain(args.domain)
+    text = _program_text(args.program)
     try:
-        shown = domain.execute_text(_program_text(args.program), args.output)
+        shown = domain.execute_text(text, args.output)
     except ValueError as err:
         if isinstance(err, ProgramError):
             raise
         raise UsageError(str(err)) from None
+    except OSError as err:
+        raise UsageError(f"{args.output}: cannot write ({err.strerror or err.__class__.__name__})") from None
     # the shape itself goes to stdout when no file was asked for; otherwise stdout stays empty
     print(shown, file=sys.stdout if args.output is None else sys.stderr)
     return 0
@@ -113,7 +89,10 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise
         raise UsageError(str(err)) from None
     if args.output:
-        Path(args.output).write_text(out)
+        try:
+            Path(args.output).write_text(out)
+        except OSError as err:
+            raise UsageError(f"{args.output}: cannot write ({err.strerror or err.__class__.__name__})") from None
     else:
         sys.stdout.write(out)
     return 0
@@ -125,7 +104,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     from plad.domains import get_domain
 
     domain = get_domain(args.domain)
-    pred = load_shapes(Path(args.pred), domain.shape)
+    pred = load_shapes(Path(args.pred), domain.shape, targets=False)
     target = load_shapes(Path(args.target), domain.shape)
     if len(pred) != len(target):
         raise UsageError(f"{args.pred} holds {len(pred)} shapes but {args.target} holds {len(target)}")
@@ -164,7 +143,7 @@ def cmd_infer(args: argparse.Namespace) -> int:
     """Programs for the user's shapes; a bad file is reported and the others still processed."""
     from plad.device import default_device
     from plad.domains import get_domain
-    from plad.infer import ModelError, infer_items, resolve_model
+    from plad.infer import ModelError, infer_items, new_run_dir, resolve_model
     from plad.inputs import read_inputs
 
     domain = get_domain(args.domain)
@@ -178,12 +157,16 @@ def cmd_infer(args: argparse.Namespace) -> int:
     except ModelError as err:
         raise UsageError(str(err)) from None
     print(f"model: {source}", file=sys.stderr)
+    try:
+        run_dir = new_run_dir(args.out)
+    except OSError as err:
+        raise UsageError(f"--out {args.out}: cannot make this run's folder ({err.strerror or err})") from None
     refine = None
     if args.refine:
         from plad.rewrite import RefineConfig
 
         refine = RefineConfig()
-    results = infer_items(model, domain, items, args.beam, args.out, refine=refine)
+    results = infer_items(model, domain, items, args.beam, run_dir, refine=refine)
     failed = 0
     for r in results:
         where = r.item.source if r.item.source.name.startswith(r.item.name) else f"{r.item.source} [{r.item.name}]"
@@ -193,15 +176,30 @@ def cmd_infer(args: argparse.Namespace) -> int:
         else:
             failed += 1
             print(f"plad: error: {where}: {r.item.error}", file=sys.stderr)
-    print(f"{len(results) - failed} of {len(results)} shapes inferred; outputs and results.csv in {args.out}",
+    print(f"{len(results) - failed} of {len(results)} shapes inferred; this run's rows: {run_dir / 'results.csv'}",
           file=sys.stderr)
     return 2 if failed else 0
 
 
 def _program_text(text: str) -> str:
-    """A program given on the command line, or the text of a .txt file holding it."""
-    if Path(text).suffix == ".txt" and Path(text).is_file():
-        return Path(text).read_text()
+    """A program given on the command line, or the text of a .txt file holding it.
+
+    An argument that can only be a path (no whitespace, and a ``.txt`` suffix or a
+    ``/``; no domain's program text looks like that) must name a readable file.
+    """
+    path = Path(text)
+    looks_like_path = not any(c.isspace() for c in text) and (path.suffix == ".txt" or "/" in text)
+    try:
+        is_file = path.is_file()
+    except (OSError, ValueError):   # a program text too long for a file name, or holding a NUL
+        is_file = False
+    if is_file and (path.suffix == ".txt" or looks_like_path):
+        try:
+            return path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise UsageError(f"{text}: not a readable text file ({err.__class__.__name__})") from None
+    if looks_like_path:
+        raise UsageError(f"{text}: file not found")
     return text
 
 
@@ -388,7 +386,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a checkpoint file or an MLflow model URI (default: models:/plad-DOMAIN@champion of the "
                         "MLflow store if one is configured and has it, else the model shipped with PLAD)")
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
-    p.add_argument("--out", default="inferred", help="output folder (default: ./inferred)")
+    p.add_argument("--out", default="inferred",
+                   help="output folder (default: ./inferred); each run writes into its own <time>-<pid>/ in it")
     p.add_argument("--refine", action="store_true",
                    help="rewrite each best-of-beam program with the rewriters (PO, pruning, insertion) before "
                         "writing it; never worse, slower")
@@ -434,19 +433,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except UsageError as err:
-        return _fail(str(err), 2)
-    except Exception as err:
-        # An error of a module the command never imported cannot be raised, so the error types
-        # are looked up among the loaded modules (importing plad.grammar here would import torch).
-        grammar, data = sys.modules.get("plad.grammar"), sys.modules.get("plad.data")
+    from plad.errors import run_guarded
+
+    def describe(err: Exception) -> str:
+        # plad.grammar is looked up among the loaded modules: importing it here would import torch, and
+        # a command that never imported it cannot raise its ProgramError
+        grammar = sys.modules.get("plad.grammar")
         if grammar is not None and isinstance(err, grammar.ProgramError):
-            return _fail(f"invalid {args.domain} program: {err}", 2)
-        if data is not None and isinstance(err, data.DataError):
-            return _fail(str(err), 1)
-        raise
+            return f"invalid {args.domain} program: {err}"
+        return str(err)
+
+    return run_guarded("plad", lambda: args.func(args), describe)
 
 
 if __name__ == "__main__":

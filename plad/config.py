@@ -27,11 +27,13 @@ from typing import Any, TypeVar
 
 import yaml
 
+from plad.errors import RunFailure
+
 T = TypeVar("T")
 
 
-class ConfigError(ValueError):
-    """A params file problem; the message is one line naming the file and key."""
+class ConfigError(RunFailure, ValueError):
+    """A params file problem; the message is one line naming the file and key (exit status 1)."""
 
 
 #: Top-level keys dvc.yaml reads itself (stage names and files); a profile cannot change them.
@@ -195,6 +197,52 @@ def load_params(path: str | os.PathLike = "params.yaml", profile: str | None = N
     return Params(out, path, ppath, frozenset(touched))
 
 
+# ---- value rules --------------------------------------------------------------------------------
+# One table for every component's config: a key of that name holding a number (or a list of numbers)
+# must satisfy the rule. Relations between keys (e.g. n_heads dividing d_model) are checked by the
+# config class itself (``__post_init__`` raising ValueError), and reported by :func:`build` with the key.
+_POSITIVE = ("must be positive", lambda v: v > 0)
+_NON_NEGATIVE = ("must be non-negative", lambda v: v >= 0)
+_FRACTION = ("must be in [0, 1)", lambda v: 0 <= v < 1)
+_OPEN_FRACTION = ("must be in (0, 1)", lambda v: 0 < v < 1)
+_UNIT = ("must be in [0, 1]", lambda v: 0 <= v <= 1)
+RULES: dict[str, tuple[str, Any]] = {
+    **{k: _POSITIVE for k in (
+        "train_programs", "val_programs", "val_metric_shapes", "batch_size", "beam", "limit", "train_limit",
+        "val_limit", "threads", "max_minutes", "d_model", "n_layers", "n_heads", "dim_ff", "enc_channels",
+        "enc_kernel", "lr", "min_lr", "steps_per_epoch", "max_epochs", "infer_beam", "infer_batch",
+        "val_beam_epoch", "val_beam_round", "val_beam", "val_batch", "max_rounds", "accumulate", "latent",
+        "hidden", "sample_batch", "max_sample_factor", "time_limit", "batch")},
+    **{k: _NON_NEGATIVE for k in (
+        "seed", "patience", "round_patience", "lr_patience", "min_delta", "grid_shapes", "grad_clip",
+        "kl_weight", "rounds", "po_sweeps", "tune_sweeps", "insertions")},
+    "dropout": _FRACTION, "momentum": _FRACTION, "lr_factor": _OPEN_FRACTION, "baseline_alpha": _UNIT,
+}
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_value(key: str, value: Any, where: str, source: str) -> None:
+    """The :data:`RULES` of ``key``, and a known domain for ``domain``/``domains``; ConfigError naming the key."""
+    if key in ("domain", "domains") and value is not None:
+        from plad.domains import domain_names
+
+        known = domain_names()
+        for name in [value] if isinstance(value, str) else value:
+            if name not in known:
+                raise ConfigError(f"{source}: {where}.{key}: unknown domain {name!r}; known: {', '.join(known)}")
+        return
+    rule = RULES.get(key)
+    if rule is None:
+        return
+    problem, ok = rule
+    for v in value if isinstance(value, (list, tuple)) else [value]:
+        if _number(v) and (v != v or not ok(v)):   # v != v: NaN
+            raise ConfigError(f"{source}: {where}.{key} = {value!r} {problem}")
+
+
 def _check_type(value: Any, annotation: Any) -> bool:
     origin = typing.get_origin(annotation)
     if annotation is Any:
@@ -249,6 +297,7 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
         if not _check_type(value, hint):
             raise ConfigError(f"{source}: {where}.{key} = {value!r} should be of type "
                               f"{getattr(hint, '__name__', hint)}")
+        _check_value(key, value, where, source)
         values[key] = value
     # keys without a default (e.g. a stage's domain) must be given; checked after the given keys,
     # since a typo in those is the likelier mistake
@@ -257,7 +306,10 @@ def build(cls: type[T], raw: Any, where: str, source: str = "params.yaml") -> T:
                and f.default_factory is dataclasses.MISSING]
     if missing:
         raise ConfigError(f"{source}: missing key(s) {', '.join(missing)} in {where!r}")
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as err:   # a relation between keys, checked by the class (e.g. n_heads dividing d_model)
+        raise ConfigError(f"{source}: {where}: {err}") from None
 
 
 def lookup(params: dict[str, Any], name: str, source: str | None = None) -> Any:

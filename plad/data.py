@@ -42,6 +42,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from plad.errors import RunFailure
 from plad.fsutil import atomic_write, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -53,8 +54,8 @@ _CHUNK = 1 << 20
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
-class DataError(Exception):
-    """A dataset file is missing or unusable. ``str(err)`` is one line: ``<path>: <problem>``."""
+class DataError(RunFailure):
+    """A dataset file is missing or unusable. ``str(err)`` is one line: ``<path>: <problem>`` (exit status 1)."""
 
     def __init__(self, path: str | os.PathLike, problem: str) -> None:
         self.path = path
@@ -260,12 +261,36 @@ def _sha256_file(path: Path) -> str:
 
 
 def _check_sha256(spec: DatasetSpec, path: Path | str, got: str, *, what: str, hint: str = "") -> None:
-    if got != spec.sha256:
+    _sha256_matches(spec.name, spec.sha256, path, got, what=what, hint=hint)
+
+
+def _sha256_matches(name: str, expected: str, path: Path | str, got: str, *, what: str, hint: str = "") -> None:
+    if got != expected:
         raise DataError(
             path,
-            f"{what} mismatch: expected {spec.sha256[:12]}..., got {got[:12]}... "
-            f"(not {spec.name}'s published file, or damaged{hint})",
+            f"{what} mismatch: expected {expected[:12]}..., got {got[:12]}... "
+            f"(not {name}'s published file, or damaged{hint})",
         )
+
+
+def verify_file(path: str | os.PathLike, sha256: str, name: str) -> Path:
+    """``path`` as published: its bytes' sha256 is ``sha256``, else a :class:`DataError` as for the CAD file.
+
+    A gzip file (``.gz``) is first checked to be gzip data at all, so an HTML page or an empty file is named
+    as such rather than as a checksum mismatch.
+    """
+    path = Path(path)
+    if path.name.endswith(".gz"):
+        try:
+            with open(path, "rb") as raw:
+                magic = raw.read(2)
+        except OSError as e:
+            raise DataError(path, f"cannot read: {e.strerror or e}") from e
+        if magic != _GZIP_MAGIC:
+            got = "an empty file" if not magic else f"starts with {magic!r}"
+            raise DataError(path, f"not a readable .tar.gz: not gzip data ({got}); expected {name}'s file")
+    _sha256_matches(name, sha256, path, _sha256_file(path), what="sha256")
+    return path
 
 
 def _read_hdf5(spec: DatasetSpec, path: Path, source: Path | BinaryIO) -> dict[str, np.ndarray]:

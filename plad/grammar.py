@@ -32,9 +32,11 @@ from dataclasses import dataclass, field
 
 import torch
 
+from plad.errors import BadInput
 
-class ProgramError(ValueError):
-    """An invalid program; ``position`` is the 0-based index of the offending token."""
+
+class ProgramError(BadInput, ValueError):
+    """An invalid program (exit status 2); ``position`` is the 0-based index of the offending token."""
 
     def __init__(self, message: str, position: int | None = None, token: str | None = None):
         super().__init__(message)

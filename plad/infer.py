@@ -3,7 +3,11 @@
 The model is a checkpoint file or an MLflow model URI (``models:/plad-<domain>@champion``,
 ``models:/plad-<domain>/3``, ``runs:/<id>/model``); without one, the registered
 champion of a configured MLflow store, else the model shipped with the package
-(:mod:`plad.resolve`). For every input shape the output folder gets:
+(:mod:`plad.resolve`). Every run writes into a folder of its own,
+``<out>/<UTC time>-<process id>/`` (:func:`new_run_dir`; created with
+``exist_ok=False``), so runs into the same ``--out``, at once or one after
+another, never overwrite each other's files or rows. For every input shape
+the run's folder gets:
 
 * ``<stem>.txt``: the program text (the domain's text form);
 * ``<stem>.png``: input and reconstruction side by side (3D: three depth views each);
@@ -14,13 +18,16 @@ champion of a configured MLflow store, else the model shipped with the package
 * the domain's exports (2D CSG: ``.svg``; 3D CSG: ``.ply`` and ``.scad``;
   ShapeAssembly: ``.ply``);
 
-and ``results.csv`` has a row per input (file, status, metric, program,
-notes or error). A bad input is reported in its row and does not stop the others.
+and the run's ``results.csv`` has a row per input (file, status, metric,
+program, notes or error). A bad input is reported in its row and does not stop
+the others.
 """
 from __future__ import annotations
 
 import csv
 import io
+import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +55,24 @@ def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple
         raise ModelError(f"{choice.ref}: {str(err).removeprefix(f'{choice.path}: ')}"
                          if choice.uri else str(err)) from None
     return net, choice.ref + "".join(f" ({note})" for note in choice.notes)
+
+
+def new_run_dir(out: str | Path) -> Path:
+    """A new folder for one run under ``out``: ``<UTC time>-<process id>`` (``-2``, ... if taken).
+
+    ``mkdir(exist_ok=False)`` is atomic: two runs never get the same folder.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}-{os.getpid()}"
+    for k in range(1, 1000):
+        path = out / (stem if k == 1 else f"{stem}-{k}")
+        try:
+            path.mkdir(exist_ok=False)
+            return path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{out}: no free run folder named {stem}-N")
 
 
 @dataclass

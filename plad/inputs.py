@@ -14,8 +14,9 @@ raising, and ``notes`` for what was done to a file that needed help.
   is cropped to the shape's bounding box, scaled (aspect kept) so that its
   longer side is :data:`FIT_2D` pixels (the median of the CAD shapes) and
   centered on the canvas.
-* ``.npy`` arrays: (H, W) or a batch (N, H, W); nonzero is inside; sizes other
-  than the canvas are fitted like images.
+* ``.npy`` arrays: one (H, W) array, fitted like an image when it is not the
+  canvas's size, or a batch (N, *canvas*) of canvas-sized arrays; nonzero is
+  inside. Any other array (e.g. a 32^3 voxel grid) is refused.
 
 3D domains (a voxel grid of ``domain.shape``, e.g. 32^3 indexed [x, y, z], y up):
 
@@ -29,10 +30,23 @@ raising, and ``notes`` for what was done to a file that needed help.
   note saying so.
 * ``.npy`` arrays of exactly the grid's shape, or a batch of them.
 
-An empty shape (or a full canvas) is an error.
+The same rules at the edge for every command (``plad score``, ``infer``,
+``refine``, ``search``; :func:`read_shapes` and :func:`read_inputs`):
+
+* a file is at most :data:`MAX_FILE_BYTES` (256 MiB), an image at most
+  :data:`MAX_PIXELS` (25 million pixels, e.g. 5000 x 5000; larger images, and
+  PIL's decompression bombs, are refused before they are decoded);
+* a ``.npy`` must hold a numeric or bool array without NaN or infinite values;
+* the array's dimensions must be the domain's (one shape or a batch);
+* **empty shapes**, in every domain: an empty *target* (nothing inside) is
+  refused, since no metric can say how close a program comes to nothing; an
+  input that fills the whole grid is refused likewise. An empty *prediction*
+  (``plad score --pred``) is allowed and scored by the domain's metric.
 """
 from __future__ import annotations
 
+import re
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,13 +56,20 @@ from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 from skimage.filters import threshold_otsu
 
+from plad.errors import BadInput, one_line
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tif", ".tiff", ".webp")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl")
 #: longer side, in pixels, of a fitted 2D shape: the median over the CAD shapes' bounding boxes
 FIT_2D = 44
+#: the largest input file read (bytes)
+MAX_FILE_BYTES = 256 * 2 ** 20
+#: the largest image decoded (pixels); PIL refuses larger ones as decompression bombs from here on
+MAX_PIXELS = 25_000_000
+Image.MAX_IMAGE_PIXELS = MAX_PIXELS
 
 
-class InputError(ValueError):
+class InputError(BadInput, ValueError):
     """A user's file cannot be used; the message is one line (without the file name)."""
 
 
@@ -67,14 +88,45 @@ def supported_suffixes(shape: tuple[int, ...]) -> tuple[str, ...]:
 
 
 # ---- 2D -----------------------------------------------------------------------------------------
+def check_file(path: Path) -> None:
+    """The rules every input file meets before it is read: it exists, is a file, and is not too large."""
+    try:
+        size = path.stat().st_size
+    except OSError:
+        raise InputError("no such file") from None
+    if not path.is_file():
+        raise InputError("not a file")
+    if size > MAX_FILE_BYTES:
+        raise InputError(f"the file is {size / 2 ** 20:.0f} MiB, more than the limit of "
+                         f"{MAX_FILE_BYTES // 2 ** 20} MiB")
+
+
+def open_image(path: Path, mode: str) -> np.ndarray:
+    """The image's pixels converted to PIL ``mode``; too large or unreadable images are an :class:`InputError`."""
+    check_file(path)
+    try:
+        with warnings.catch_warnings():   # PIL warns about what is refused here anyway
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = Image.open(path)      # reads the header only: the size is known before decoding
+        with image:
+            w, h = image.size
+            if w * h > MAX_PIXELS:
+                raise InputError(f"the image is {w}x{h} pixels, more than the limit of {MAX_PIXELS:,} pixels")
+            image.load()
+            return np.asarray(image.convert(mode))
+    except InputError:
+        raise
+    except Image.DecompressionBombError as err:   # PIL's own check at open: over twice the limit
+        found = re.search(r"\((\d+) pixels\)", str(err))
+        size = f"has {int(found.group(1)):,} pixels" if found else "is too large"
+        raise InputError(f"the image {size}, more than the limit of {MAX_PIXELS:,} pixels") from None
+    except (UnidentifiedImageError, OSError, ValueError, EOFError) as err:
+        raise InputError(f"not a readable image ({err.__class__.__name__})") from None
+
+
 def binarize_image(path: Path) -> np.ndarray:
     """Foreground mask (H, W) of an image file by the module's rule."""
-    try:
-        with Image.open(path) as image:
-            image.load()
-            rgba = np.asarray(image.convert("RGBA"))
-    except (UnidentifiedImageError, OSError, ValueError) as err:
-        raise InputError(f"not a readable image ({err.__class__.__name__})") from None
+    rgba = open_image(path, "RGBA")
     alpha = rgba[..., 3]
     if alpha.min() < 128 <= alpha.max():
         return alpha >= 128
@@ -115,6 +167,7 @@ def voxelize_mesh(path: Path, shape: tuple[int, int, int]) -> tuple[np.ndarray, 
     """(bool grid of ``shape`` indexed [x, y, z], notes) of a mesh file by the module's rule."""
     import open3d as o3d
 
+    check_file(path)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     mesh = o3d.io.read_triangle_mesh(str(path))
     if not mesh.has_triangles():
@@ -151,14 +204,72 @@ def voxelize_mesh(path: Path, shape: tuple[int, int, int]) -> tuple[np.ndarray, 
 
 # ---- any domain -----------------------------------------------------------------------------------
 def read_npy(path: Path) -> np.ndarray:
-    """A numeric or bool .npy array as bool (nonzero inside)."""
+    """A numeric or bool .npy array without NaN or infinite values, as bool (nonzero inside)."""
+    check_file(path)
     try:
         array = np.load(path, allow_pickle=False)
     except Exception as err:  # numpy raises several types for bad files
-        raise InputError(f"not a readable .npy file ({err.__class__.__name__}: {err})") from None
-    if array.dtype.kind not in "biuf":
-        raise InputError(f"expected a numeric or bool array, got dtype {array.dtype}")
+        raise InputError(f"not a readable .npy file ({err.__class__.__name__}: {one_line(err)})") from None
+    if not isinstance(array, np.ndarray) or array.dtype.kind not in "biuf":
+        raise InputError(f"expected a numeric or bool array, got dtype {getattr(array, 'dtype', type(array))}")
+    if array.dtype.kind == "f" and not np.isfinite(array).all():
+        raise InputError("the array holds NaN or infinite values")
+    if array.ndim == 0 or array.size == 0:
+        raise InputError(f"the array has no shape in it (shape {array.shape})")
     return array != 0
+
+
+def npy_batch(array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``array`` as a batch (N, ...) by the module's rule: one shape, or a batch of the domain's exact shape.
+
+    A 2D domain also takes one (H, W) array of another size (fitted later); nothing else.
+    """
+    if array.ndim == len(shape) and (array.shape == shape or len(shape) == 2):
+        return array[None]
+    if array.ndim == len(shape) + 1 and array.shape[1:] == shape:
+        return array
+    want = ", ".join(map(str, shape))
+    other = " or one (H, W) array to fit" if len(shape) == 2 else ""
+    raise InputError(f"expected an array of shape ({want}) or (N, {want}){other}, got {array.shape}: "
+                     f"its dimensions do not match the domain")
+
+
+def check_target(grid: np.ndarray) -> np.ndarray:
+    """The empty-shape rule of every domain: a target shape is neither empty nor the whole grid."""
+    if not grid.any():
+        raise InputError("the shape is empty (nothing inside): an empty target is refused in every domain")
+    if grid.all():
+        raise InputError("the shape fills the whole grid")
+    return grid
+
+
+def read_shapes(path: Path, shape: tuple[int, ...], targets: bool = True) -> np.ndarray:
+    """Shapes of exactly the domain's ``shape`` for scoring or search: bool (N, *shape).
+
+    A ``.npy`` (one shape or a batch), or for a 2D domain an image of exactly the
+    canvas size (255 inside, 0 outside, as ``plad execute`` writes). ``targets``:
+    the empty-shape rule applies (:func:`check_target`); a prediction may be empty.
+    """
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        array = read_npy(path)
+    elif suffix in IMAGE_SUFFIXES and len(shape) == 2:
+        array = open_image(path, "L") > 127
+    else:
+        allowed = ".npy" + (" or an image (.png, ...)" if len(shape) == 2 else "")
+        raise InputError(f"unsupported file type {suffix or '(none)'!r}; use {allowed}")
+    batch = array[None] if array.shape == shape else array
+    if batch.shape[1:] != shape:   # exactly the domain's grid: nothing is fitted for scoring
+        want = ", ".join(map(str, shape))
+        raise InputError(f"expected shape ({want}) or (N, {want}), got {array.shape}: its dimensions do not "
+                         f"match the domain")
+    if targets:
+        for i, grid in enumerate(batch):
+            try:
+                check_target(grid)
+            except InputError as err:
+                raise InputError(f"shape {i}: {err}" if len(batch) > 1 else str(err)) from None
+    return batch
 
 
 def _items_of(path: Path, shape: tuple[int, ...], name: str) -> list[Item]:
@@ -171,12 +282,9 @@ def _items_of(path: Path, shape: tuple[int, ...], name: str) -> list[Item]:
                              f"{', '.join(supported_suffixes(shape))}")
         if suffix == ".npy":
             array = read_npy(path)
-            batch = array if array.ndim == len(shape) + 1 else array[None]
-            if batch.ndim != len(shape) + 1 or (len(shape) == 3 and batch.shape[1:] != shape):
-                want = "x".join(map(str, shape))
-                raise InputError(f"expected an array of shape ({want}) or (N, {want.replace('x', ', ')}), "
-                                 f"got {array.shape}")
-            names = [name] if array.ndim == len(shape) else [f"{name}_{i}" for i in range(len(batch))]
+            batch = npy_batch(array, shape)
+            names = [name] if batch.shape[0] == 1 and array.ndim == len(shape) else \
+                [f"{name}_{i}" for i in range(len(batch))]
             out = []
             for n, mask in zip(names, batch):
                 item = Item(n, path)
@@ -195,12 +303,7 @@ def _items_of(path: Path, shape: tuple[int, ...], name: str) -> list[Item]:
         return [Item(name, path, None, notes, str(err))]
 
 
-def _check(grid: np.ndarray) -> np.ndarray:
-    if not grid.any():
-        raise InputError("the shape is empty")
-    if grid.all():
-        raise InputError("the shape fills the whole grid")
-    return grid
+_check = check_target
 
 
 def read_inputs(paths: Iterable[str | Path], shape: tuple[int, ...]) -> list[Item]:

@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from plad.data import DataError
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
 from plad.layout import FLOOR, METRICS, SEARCH, STATE, Layout, eval_key
@@ -100,9 +101,17 @@ def floor_label(domains: list[str]) -> str:
 
 
 def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> list[MethodResult]:
-    """The same records from the MLflow store alone (latest finished run per stage and method)."""
-    experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)   # LookupError naming the store
-    metric = get_domain(domain).metric.name
+    """The same records from the MLflow store alone (latest finished run per stage and method).
+
+    A run's validation value is the best of its whole history by the metric's
+    direction (the selected model), not the value at the highest step (the last round's).
+    """
+    try:
+        experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)
+    except LookupError as err:   # no experiment in the store: nothing was tracked there
+        raise DataError("MLflow", str(err)) from None
+    scorer = get_domain(domain).metric
+    metric = scorer.name
 
     def latest(stage: str, key: str) -> RunRecord | None:
         return latest_finished_run(experiment_id, {"plad.stage": stage, "plad.method": key, "plad.domain": domain})
@@ -120,7 +129,10 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
             m = upgrade_summary({**m, "metric": metric})   # runs logged by older versions
             res.rounds = int(m["units"]) if "units" in m else None
             res.stopped = ft.tags.get("plad.stopped")
-            res.val_best = m.get("val")
+            # "val" is logged per round (step = round) and once more for the selection; older runs: val_<metric>
+            val_key = "val" if "val" in ft.metrics else f"val_{metric}"
+            history = metric_history(ft.run_id, val_key) if val_key in ft.metrics else []
+            res.val_best = scorer.best_value(v for _, v in history) if history else m.get("val")
         out.append(res)
     return out
 

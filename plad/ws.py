@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from plad import distributed as dist
+from plad.checkpoint import CheckpointError
 from plad.domains.base import Domain, split_padding
 from plad.fsutil import atomic_write
 from plad.loop import Limits, Loop, Objective, Unit
@@ -109,7 +110,11 @@ def save_generator(path: str | Path, gen: Generator, cfg: WSConfig, round_: int)
 
 
 def load_generator(path: str | Path, device: torch.device) -> tuple[Generator, int]:
-    payload = torch.load(Path(path), map_location="cpu", weights_only=False)
+    try:   # tensors and plain data only: a generator file cannot run code when loaded
+        payload = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises many types for corrupt or unsafe files
+        raise CheckpointError(f"{path}: not a readable generator checkpoint of tensors and plain data "
+                              f"({err.__class__.__name__})") from None
     cfg = WSConfig(**payload["ws"])
     gen = Generator(PLADNet(ModelConfig(**payload["model_config"])), cfg.latent, cfg.hidden)
     gen.load_state_dict(payload["state_dict"])

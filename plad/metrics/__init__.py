@@ -4,7 +4,7 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +45,13 @@ class Metric:
     def better(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Elementwise: ``a`` strictly better than ``b``."""
         return a > b if self.higher_is_better else a < b
+
+    def best_value(self, values: Iterable[float]) -> float | None:
+        """The best of plain numbers by this metric's direction (NaNs skipped); ``None`` for none."""
+        finite = [float(v) for v in values if not math.isnan(float(v))]
+        if not finite:
+            return None
+        return max(finite) if self.higher_is_better else min(finite)
 
     def best(self, values: torch.Tensor, dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
         """(best values, their indices) along ``dim``; the first index wins ties."""

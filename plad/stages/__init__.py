@@ -3,13 +3,13 @@
 Prefect flows (``flows/``) call the same functions, so each step has one
 implementation. :func:`stage_main` is the shared command-line shell: read
 the stage's params section, run, print the JSON result, and turn the errors
-a user can fix into one line and exit status 1.
+a user can fix into one line and the exit status of :mod:`plad.errors` (1 for
+a params, data or checkpoint problem).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,10 +30,13 @@ class StageContext:
 
 
 def stage_main(stage: str, cls: type[T], run: Callable[[T, StageContext], Any], argv: list[str] | None = None,
-               description: str | None = None) -> int:
-    from plad.checkpoint import CheckpointError
-    from plad.config import ConfigError, apply_overrides, build, load_params, lookup
-    from plad.data import DataError
+               description: str | None = None,
+               options: Callable[[argparse.ArgumentParser], Callable[[T, argparse.Namespace], T]] | None = None
+               ) -> int:
+    """Run a stage from the command line. ``options`` may add a stage's own flags to the parser; it
+    returns how the parsed flags change the built config."""
+    from plad.config import apply_overrides, build, load_params, lookup
+    from plad.errors import run_guarded
 
     parser = argparse.ArgumentParser(prog=f"python -m plad.stages.{stage}", description=description)
     parser.add_argument("--params", default="params.yaml")
@@ -43,13 +46,15 @@ def stage_main(stage: str, cls: type[T], run: Callable[[T, StageContext], Any], 
                         help="override a key of the section (dotted for nested keys; value parsed as YAML)")
     parser.add_argument("--root", default=".",
                         help="root folder of the artifacts (plad.layout; default: the working directory)")
+    configure = options(parser) if options is not None else None
     args = parser.parse_args(argv)
-    try:
+
+    def go() -> None:
         params = load_params(args.params)
         raw = apply_overrides(lookup(params, args.section), args.set, args.section)
         cfg = build(cls, raw, args.section, source=params.source(args.section))
+        if configure is not None:
+            cfg = configure(cfg, args)
         print(json.dumps(run(cfg, StageContext(Layout(args.root), Path(args.params)))))
-    except (ConfigError, DataError, CheckpointError) as err:
-        print(f"{stage}: error: {err}", file=sys.stderr)
-        return 1
-    return 0
+
+    return run_guarded(stage, go)

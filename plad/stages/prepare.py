@@ -44,7 +44,7 @@ def prepare(cfg: PrepareConfig, layout: Layout = Layout()) -> dict[str, dict]:
     Returns ``{"domains": {domain: summary}, "sources": {source: report}}``.
     """
     from plad.config import ConfigError
-    from plad.data import write_prepared
+    from plad.data import DataError, write_prepared
     from plad.domains import get_domain
 
     groups = target_groups(cfg.domains)
@@ -61,8 +61,8 @@ def prepare(cfg: PrepareConfig, layout: Layout = Layout()) -> dict[str, dict]:
         for domain in domains:
             got = prepared.splits["train"].shape[1:]
             if tuple(domain.shape) != got:
-                raise ValueError(f"domain {domain.name} works on {domain.shape}, its target source "
-                                 f"{source_name} gives {got}")
+                raise DataError(layout.prepared_dir, f"domain {domain.name} works on {domain.shape}, its target "
+                                                     f"source {source_name} gives {got}")
             out["domains"][domain.name] = write_prepared(
                 domain.name, tuple(domain.shape), prepared.splits, layout.prepared(domain.name),
                 layout.prepared_summary(domain.name), prepared.provenance)

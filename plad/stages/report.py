@@ -3,9 +3,15 @@
 The table has the paper's Table 1 layout (one row per method, SP first) with
 the paper's numbers beside ours, and the supplement's P_BEST all-time vs
 per-round comparison. ``source: mlflow`` rebuilds the same report from the
-MLflow store alone. With ``register: true`` the model with the best
-validation metric (over SP and every fine-tuned method) is registered as
-``plad-<domain>`` and gets the ``champion`` alias.
+MLflow store alone.
+
+Only when asked (``--register`` on the command line, as dvc.yaml's report
+stage does, or ``register: true``) is the model with the best validation
+metric (over SP and every fine-tuned method; a method's value is the best of
+its validation history) registered as ``plad-<domain>`` with the
+``champion`` alias, and only if that value beats the current champion's
+(recorded as its version's ``plad.val`` tag), by the metric's direction
+(:attr:`plad.metrics.Metric.higher_is_better`). Each decision is printed.
 
 Beyond the paper (``beyond``, from the evaluation files whatever the
 source): a table of rows with search and their seconds per shape, appended
@@ -18,7 +24,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 from plad.config import ConfigError
 from plad.data import DataError
@@ -39,7 +45,7 @@ from plad.report import (
     timed_from_files,
 )
 from plad.stages import StageContext, stage_main
-from plad.tracking import StageRun, set_champion, set_version_tags
+from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags
 
 
 @dataclass
@@ -58,8 +64,9 @@ class ReportConfig:
     per_round: dict[str, str] = field(default_factory=lambda: {"lest_st": "lest_st_per_round"})
     #: where the numbers come from: "files" (the pipeline's outputs) or "mlflow"
     source: str = "files"
-    #: register the best model (by validation) in the MLflow registry with alias "champion"
-    register: bool = True
+    #: register the best model (by validation) in the MLflow registry with alias "champion", if it beats the
+    #: current champion; off unless asked (the command line's --register sets it)
+    register: bool = False
     profile: str | None = None
     #: rows beyond the paper, by result key (``search``, a method, ``<method>_refined``), in their own table
     beyond: list[str] = field(default_factory=list)
@@ -147,19 +154,50 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
         if cfg.register:
             for d, entry in summary["domains"].items():
                 if "champion" not in entry:
+                    print(f"report: plad-{d}: no validated model; nothing registered", file=sys.stderr)
                     continue
-                key = entry["champion"]["method"]
+                key, val = entry["champion"]["method"], entry["champion"]["val"]
                 name = f"plad-{d}"
+                metric = get_domain(d).metric
+                current = champion_tags(name)
+                held = _recorded_val(current)
+                if held is not None and not metric.better(val, held):
+                    entry["champion"]["registered"] = False
+                    print(f"report: kept {name}@champion (version {current[0]}, validation {metric.name} {held:.6g}):"
+                          f" the best here, {key} with {val:.6g}, does not beat it", file=sys.stderr)
+                    continue
                 version = run.log_model(ctx.layout.model(d, key), registered_name=name).rsplit("/", 1)[-1]
+                set_version_tags(name, version, {"plad.method": key, "plad.test": entry["test"].get(key),
+                                                 "plad.val": repr(float(val)), "plad.metric": metric.name})
                 set_champion(name, version)
-                set_version_tags(name, version, {"plad.method": key, "plad.test": entry["test"].get(key)})
-                entry["champion"].update(model=f"models:/{name}@champion", version=version)
+                entry["champion"].update(model=f"models:/{name}@champion", version=version, registered=True)
+                was = "" if current is None else (f", replacing version {current[0]}" + (
+                    f" ({held:.6g})" if held is not None else " (no recorded validation value)"))
+                print(f"report: registered {name} version {version} ({key}, validation {metric.name} {val:.6g}) "
+                      f"as {name}@champion{was}", file=sys.stderr)
             atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
     return summary
 
 
+def _recorded_val(champion: tuple[int, dict[str, str]] | None) -> float | None:
+    """The validation value a champion version was registered with (its ``plad.val`` tag), if any."""
+    if champion is None:
+        return None
+    try:
+        return float(champion[1]["plad.val"])
+    except (KeyError, ValueError):
+        return None
+
+
+def _options(parser):
+    parser.add_argument("--register", action="store_true",
+                        help="register each domain's best model as plad-<domain>@champion if it beats the current "
+                             "champion's validation value (otherwise nothing is registered)")
+    return lambda cfg, args: replace(cfg, register=True) if args.register else cfg
+
+
 def main(argv: list[str] | None = None) -> int:
-    return stage_main("report", ReportConfig, tracked_report, argv, __doc__.splitlines()[0])
+    return stage_main("report", ReportConfig, tracked_report, argv, __doc__.splitlines()[0], options=_options)
 
 if __name__ == "__main__":
     sys.exit(main())

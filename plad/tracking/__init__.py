@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any
 
 from plad.tracking.registry import (
+    champion_tags,
     download_checkpoint,
     is_model_uri,
     registered_models,
@@ -47,6 +48,7 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun",
-           "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri", "latest_finished_run",
-           "load_checkpoint_pyfunc", "load_registered", "metric_history", "pip_requirements", "pipeline_tags",
+           "champion_tags", "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri",
+           "latest_finished_run", "load_checkpoint_pyfunc", "load_registered", "metric_history", "pip_requirements",
+           "pipeline_tags",
            "registered_models", "set_champion", "set_version_tags", "tracking_uri"]

@@ -17,6 +17,17 @@ def set_champion(name: str, version: int | str, alias: str = "champion") -> None
     client().set_registered_model_alias(name, alias, str(version))
 
 
+def champion_tags(name: str, alias: str = "champion") -> tuple[int, dict[str, str]] | None:
+    """(version, tags) of the version ``models:/<name>@<alias>`` points at; ``None`` when there is none."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        mv = client().get_model_version_by_alias(name, alias)
+    except MlflowException:   # no such registered model, or no such alias
+        return None
+    return int(mv.version), dict(mv.tags or {})
+
+
 def set_version_tags(name: str, version: int | str, tags: Mapping[str, Any]) -> None:
     """Tag one registered model version (values as strings)."""
     mlflow_client = client()

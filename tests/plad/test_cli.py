@@ -95,7 +95,9 @@ def test_score_npy_batch_prints_values_then_mean(tmp_path):
 
 def test_score_reports_bad_files_in_one_line(tmp_path):
     np.save(tmp_path / "wrong.npy", np.zeros((3, 32, 32), bool))
-    np.save(tmp_path / "ok.npy", np.zeros((3, 64, 64), bool))
+    ok = np.zeros((3, 64, 64), bool)
+    ok[:, 20:40, 20:40] = True   # an empty target is refused (plad.inputs): these targets are not empty
+    np.save(tmp_path / "ok.npy", ok)
     (tmp_path / "junk.png").write_bytes(b"not a png")
     cases = [
         (tmp_path / "wrong.npy", "expected shape"),

@@ -55,6 +55,12 @@ def save_png(mask: np.ndarray, path, scale: int = 1) -> None:
     Image.fromarray(img, mode="L").save(path)
 
 
+def the_run(out):
+    """The one run folder a `plad infer --out out` made (each run writes into its own)."""
+    (run,) = [p for p in out.iterdir() if p.is_dir()]
+    return run
+
+
 def rows_of(out) -> list[dict]:
     with open(out / "results.csv", newline="") as fh:
         return list(csv.DictReader(fh))
@@ -117,6 +123,7 @@ def test_infer_png_with_the_registered_champion(registry, tmp_path, capsys):
     save_png(render_2d(PROGRAM_2D), tmp_path / "drawing.png", scale=3)          # 192 x 192: fitted
     out = tmp_path / "out"
     assert main(["infer", "csg2d", str(tmp_path / "drawing.png"), "--beam", "3", "--out", str(out)]) == 0
+    out = the_run(out)
     err = capsys.readouterr().err
     assert "model: models:/plad-csg2d@champion" in err
     for suffix in (".txt", ".png", ".svg", ".input.npy", ".recon.npy"):
@@ -141,6 +148,7 @@ def test_folder_with_bad_files_processes_the_others(registry, tmp_path, capsys):
     (folder / "readme.txt").write_text("not a shape")                        # unsupported: skipped
     out = tmp_path / "out"
     status = main(["infer", "csg2d", str(folder), "--beam", "2", "--out", str(out)])
+    out = the_run(out)
     captured = capsys.readouterr()
     assert status == 2
     assert "broken.png: not a readable image" in captured.err
@@ -159,6 +167,7 @@ def test_infer_obj_mesh_with_a_checkpoint(checkpoints, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["infer", "csg3d", str(mesh), "--model", str(checkpoints["csg3d"]), "--beam", "2",
                  "--out", str(out)]) == 0
+    out = the_run(out)
     for suffix in (".txt", ".png", ".scad", ".input.npy", ".recon.npy"):
         assert (out / f"part{suffix}").is_file(), suffix
     (row,) = rows_of(out)

@@ -38,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir
+from plad.data import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir, verify_file
 from plad.datasets.partnet.execute import run_text
-from plad.datasets.partnet.source import CATEGORIES, FOLDER, SOURCE_NAME, find_source, read_source
+from plad.datasets.partnet.source import CATEGORIES, FOLDER, SOURCE_NAME, SOURCE_SHA256, find_source, read_source
 from plad.datasets.partnet.voxels import RES, normalization, voxelize
 from plad.fsutil import atomic_write_text
 from plad.grammar import ProgramError
@@ -158,7 +158,11 @@ def load_split(split: str, data_dir: str | os.PathLike | None = None) -> np.ndar
             key = (str(path.resolve()), split)
             if key not in _SPLIT_CACHE:
                 log.info("no prepared %s; executing the %s programs of %s", PREPARED_NAME, split, path)
-                programs, assignment = read_source(path)
+                verify_file(path, SOURCE_SHA256, "PartNet")
+                try:
+                    programs, assignment = read_source(path)
+                except (tarfile.TarError, EOFError, OSError) as err:
+                    raise DataError(path, f"not a readable .tar.gz ({err.__class__.__name__}: {err})") from None
                 arrays, failures = execute_records(programs, [r for r in assignment if r[0] == split])
                 for name, reason in failures:
                     log.warning("PartNet dataset: %s failed: %s", name, reason)

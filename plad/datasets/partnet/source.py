@@ -8,14 +8,15 @@ stays fast and imports no torch.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import tarfile
 from pathlib import Path
 
-from plad.data import SPLITS, DataError, resolve_data_dir
+from plad.data import SPLITS, DataError, resolve_data_dir, verify_file
 
 SOURCE_NAME = "partnet_programs.tar.gz"
+#: sha256 of the published ``partnet_programs.tar.gz`` (the compressed file's bytes); checked before any use
+SOURCE_SHA256 = "957ace4785ffd6e5dc345a1fae05e571ea1d9d82aa2b14c08deb57274b4daa71"
 FOLDER = "shapeassembly_partnet"
 CATEGORIES = ("chair", "table", "storage")
 
@@ -55,21 +56,13 @@ def read_source(tar_path: str | os.PathLike) -> tuple[dict[tuple[str, str], str]
 
 
 def find_source(data_dir: str | os.PathLike | None) -> Path:
-    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder)."""
+    """The programs tarball in the data directory (or its ``shapeassembly_partnet/`` folder), sha256-verified."""
     root = resolve_data_dir(data_dir)
     for path in (root / FOLDER / SOURCE_NAME, root / SOURCE_NAME):
         if path.is_file():
-            return path
+            return verify_file(path, SOURCE_SHA256, "PartNet")
     raise DataError(root / FOLDER / SOURCE_NAME, "no such file: the PartNet ShapeAssembly programs are needed "
                                                  "for the 3D target shapes (see the datasets README)")
-
-
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def check(data_dir: str | os.PathLike | None = None) -> list[str]:
@@ -88,12 +81,11 @@ def check(data_dir: str | os.PathLike | None = None) -> list[str]:
         raise DataError(path, f"{len(absent)} split ids without a program, e.g. {absent[0]}")
     per_cat = ", ".join(f"{sum(1 for c, _ in programs if c == cat)} {cat}" for cat in CATEGORIES)
     counts = {s: sum(1 for r in assignment if r[0] == s) for s in SPLITS}
-    return [f"PartNet programs {path}: {len(programs)} programs ({per_cat}), sha256 {sha256(path)}",
+    return [f"PartNet programs {path}: {len(programs)} programs ({per_cat}), sha256 {SOURCE_SHA256} verified",
             "PartNet " + ", ".join(f"{s}: {n} programs" for s, n in counts.items())
             + " (executed and voxelized at 32^3 by the prepare stage)"]
 
 
 def checksums(data_dir: str | os.PathLike | None = None) -> dict[str, str]:
-    """{the programs tarball: its sha256}."""
-    path = find_source(data_dir)
-    return {str(path): sha256(path)}
+    """{the programs tarball: its sha256} (verified by :func:`find_source`)."""
+    return {str(find_source(data_dir)): SOURCE_SHA256}

@@ -1,0 +1,61 @@
+"""One exit-code convention for the ``plad`` command line and the stage commands.
+
+* 0 (:data:`OK`): the command did what was asked;
+* 1 (:data:`FAILURE`): the run or its data failed: a missing or damaged
+  dataset, checkpoint or MLflow store, a params file with a bad key or value,
+  a stage whose inputs are not there yet;
+* 2 (:data:`USAGE`): bad usage or input: a command-line argument, a program
+  text, an input file given on the command line (argparse uses 2 as well).
+  A command that processes several inputs (``plad infer`` on a folder) writes
+  every good result and then exits 2 when any input was refused.
+
+Each error class a user can cause derives from :class:`RunFailure` or
+:class:`BadInput` and so carries its status; :func:`run_guarded` is where the
+CLI and every stage's ``main()`` turn such an error into one line on stderr
+and its status. Anything else is a bug and keeps its traceback.
+"""
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+OK = 0
+FAILURE = 1
+USAGE = 2
+
+
+class PladError(Exception):
+    """An error a user can fix; ``str(err)`` is one line. ``exit_code`` is the command's status."""
+
+    exit_code = FAILURE
+
+
+class RunFailure(PladError):
+    """The run or its data failed (exit status 1)."""
+
+    exit_code = FAILURE
+
+
+class BadInput(PladError):
+    """Bad usage or input on the command line (exit status 2)."""
+
+    exit_code = USAGE
+
+
+def one_line(text: object) -> str:
+    return " ".join(str(text).split())
+
+
+def fail(prog: str, message: object, status: int) -> int:
+    """Print ``<prog>: error: <message>`` as one line on stderr; return ``status``."""
+    print(f"{prog}: error: {one_line(message)}", file=sys.stderr)
+    return status
+
+
+def run_guarded(prog: str, fn: Callable[[], int | None], describe: Callable[[PladError], str] = str) -> int:
+    """``fn()``'s status (None: :data:`OK`); a :class:`PladError` becomes one line and its ``exit_code``."""
+    try:
+        status = fn()
+    except PladError as err:
+        return fail(prog, describe(err), err.exit_code)
+    return OK if status is None else status
