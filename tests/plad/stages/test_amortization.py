@@ -109,16 +109,18 @@ def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
     shapes = load_prepared(layout.prepared("csg2d"), "test")[:3]
     for i, shape in enumerate(shapes):
         np.save(tmp_path / f"s{i}.npy", shape)
-    got = {}
+    got, runs = {}, {}
     for flag in ([], ["--refine"]):
         out = tmp_path / ("refined" if flag else "plain")
         assert main(["infer", "csg2d", *(str(tmp_path / f"s{i}.npy") for i in range(3)), "--model",
                      str(layout.model("csg2d")), "--beam", "2", "--out", str(out), *flag]) == 0
-        with (out / "results.csv").open() as fh:
+        (run,) = out.iterdir()   # each plad infer run writes into a folder of its own
+        runs[bool(flag)] = run
+        with (run / "results.csv").open() as fh:
             got[bool(flag)] = np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
     assert (got[True] <= got[False]).all() and got[True].mean() < got[False].mean()
     # what is written is the refined program: plad score of its files gives the reported value
     capsys.readouterr()
-    assert main(["score", "csg2d", "--pred", str(tmp_path / "refined" / "s0.recon.npy"),
-                 "--target", str(tmp_path / "refined" / "s0.input.npy")]) == 0
+    assert main(["score", "csg2d", "--pred", str(runs[True] / "s0.recon.npy"),
+                 "--target", str(runs[True] / "s0.input.npy")]) == 0
     assert float(capsys.readouterr().out.split()[-1]) == pytest.approx(got[True][0], abs=1e-5)
