@@ -1,7 +1,10 @@
 """One rank of the distributed tests, started by torchrun: runs stages' ``main`` and records for the test
 the weights after every optimizer step and what this process wrote.
 
-    torchrun ... tests/distributed_worker.py RECORD_DIR STAGE [stage arguments] [:: STAGE [arguments] ...]
+    torchrun ... -m tests.distributed_worker RECORD_DIR STAGE [stage arguments] [:: STAGE [arguments] ...]
+
+(as a module: run as a script, its folder ``tests/`` would come first on ``sys.path`` and ``tests/plad/``
+would shadow the package ``plad``).
 
 Runs the stage commands one after the other (one launch costs seconds of
 imports) and writes ``RECORD_DIR/rank<RANK>.json``, a list with one record

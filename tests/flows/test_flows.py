@@ -1,10 +1,16 @@
-"""Prefect flows run the same functions as the DVC stages."""
+"""Prefect flows run the same functions as the DVC stages.
+
+Marked ``pipeline``: the flows run whole stage pipelines (prepare on every domain; rounds, evaluation and
+the report) under a temporary Prefect server, about 3 minutes of the suite.
+"""
 import json
 
 import numpy as np
 import pytest
 
 from plad.layout import Layout
+
+pytestmark = pytest.mark.pipeline
 
 
 @pytest.fixture(scope="module")

@@ -16,12 +16,14 @@ import pytest
 import torch
 
 from plad.layout import BEST, HISTORY, LAST, STATE, SUMMARY, Layout
-from tests.procs import REPO_ROOT, child_env, children, left_behind, run, tail
+from tests.procs import child_env, children, left_behind, run, tail
 from tests.tiny import ARCHITECTURE, csg2d_inputs
 
 pytestmark = pytest.mark.integration
 
-WORKER = REPO_ROOT / "tests" / "distributed_worker.py"
+# run as a module (torchrun -m): as a script, its folder tests/ would come first on sys.path, where
+# tests/plad/ (this folder) would shadow the package plad
+WORKER = "tests.distributed_worker"
 MODEL = {**ARCHITECTURE, "dropout": 0.1, "enc_channels": list(ARCHITECTURE["enc_channels"])}
 
 
@@ -32,7 +34,7 @@ def launch(tmp, name: str, commands: list[list[str]]) -> list[list[dict]]:
     records.mkdir()
     log = tmp / f"{name}.log"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           str(WORKER), str(records), *" :: ".join(" ".join(c) for c in commands).split(" ")]
+           "-m", WORKER, str(records), *" :: ".join(" ".join(c) for c in commands).split(" ")]
     env = child_env(PLAD_TEST_WATCH=str(tmp), MLFLOW_TRACKING_URI=f"sqlite:///{tmp / 'mlflow.db'}")
     status = run(cmd, env, log, timeout=300, cwd=tmp)
     assert status == 0, tail(log)
