@@ -117,9 +117,8 @@ def test_real_cad_read_once_and_cached(cad, monkeypatch):
     # (the autouse fixture cleared it again) and then check that hits do no I/O.
     cadset.load_cad(cad["dir"], "test")
     monkeypatch.setattr(data, "_read_verified", lambda *a: pytest.fail("cache miss"))
-    t0 = time.perf_counter()
+    # no timing assertion (it failed on a loaded machine): the patched reader above proves no I/O
     again = cadset.load_cad(cad["dir"], "train")
-    assert time.perf_counter() - t0 < 0.5
     assert np.array_equal(again, cad["arrays"]["train"])
     # Callers get their own copy: mutating it must not corrupt the cache.
     again[:] = False
