@@ -266,3 +266,38 @@ def test_pretrain_config_has_the_curriculum_section():
     from plad.stages.pretrain import PretrainConfig
 
     assert {f.name for f in dataclasses.fields(PretrainConfig)} >= {"curriculum", "gap_programs", "real_val_shapes"}
+
+
+# -- the stage: pretraining with the curriculum, killed and resumed -----------------------------------
+def test_pretraining_with_the_curriculum_resumes_in_its_stage(tmp_path):
+    """The stage is checkpointed: a run stopped after epoch 2 and started again equals an uninterrupted one."""
+    from plad.layout import HISTORY, LAST, Layout
+    from plad.model import Architecture
+    from plad.stages.pretrain import PretrainConfig, pretrain
+    from plad.stages.synthesize import SynthesizeConfig, synthesize
+
+    synthesize(SynthesizeConfig(domain="csg2d", train_programs=300, val_programs=16), Layout(tmp_path / "a"))
+    (tmp_path / "b" / "data").mkdir(parents=True)
+    (tmp_path / "b" / "data" / "synthetic").symlink_to(tmp_path / "a" / "data" / "synthetic")
+
+    def cfg(epochs):
+        return PretrainConfig(
+            domain="csg2d", device="cpu", val_metric_shapes=4, gap_programs=8,
+            model=Architecture(d_model=16, n_layers=1, n_heads=2, dim_ff=32, enc_channels=(4, 4, 8, 8),
+                               prefix_bos=True, enc_init="kaiming"),
+            train=TrainConfig(batch_size=8, steps_per_epoch=3, max_epochs=epochs, warmup_steps=4),
+            curriculum=CurriculumConfig(enabled=True, stages=[1, 3], stage_steps=6, replay=0.25))
+
+    pretrain(cfg(4), Layout(tmp_path / "a"))
+    pretrain(cfg(2), Layout(tmp_path / "b"))
+    assert torch.load(tmp_path / "b/runs/pretrain/csg2d" / LAST, weights_only=False)["stages"]["stage"] == 1
+    pretrain(cfg(4), Layout(tmp_path / "b"))
+    rows = [(tmp_path / r / "runs/pretrain/csg2d" / HISTORY).read_text().splitlines() for r in "ab"]
+    strip = lambda line: line.rsplit(",", 1)[0]  # noqa: E731 (without epoch_seconds)
+    assert [strip(x) for x in rows[0]] == [strip(x) for x in rows[1]]
+    header = rows[0][0].split(",")
+    stage = [float(r.split(",")[header.index("curriculum_stage")]) for r in rows[0][1:]]
+    assert stage == [0.0, 0.0, 1.0, 1.0]   # the stage each epoch trained in: two epochs of 3 steps per stage
+    assert {"prefix_gap", "stage_val_loss", "stage_val_acc", "val_chamfer"} <= set(header)
+    a, b = (torch.load(tmp_path / r / "runs/pretrain/csg2d" / LAST, weights_only=False)["state_dict"] for r in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
