@@ -14,7 +14,8 @@ ShapeAssembly); after them comes the final stage, which takes every
 program. A stage whose maximum is below the smallest complexity in the data
 trains on the smallest complexity present. A stage ends, at an epoch's end,
 when the first of these holds: it has trained ``stage_steps`` steps; the
-prefix-swap gap (:mod:`plad.diagnostics`) reached ``advance_gap``; the
+prefix-swap gap (:mod:`plad.diagnostics`) on validation programs of the
+stage reached ``advance_gap``; the
 token accuracy on the validation programs of the stage reached
 ``advance_acc``; its validation loss has not improved for
 ``stage_patience`` epochs (early stop per stage). The final stage ends with
@@ -51,7 +52,7 @@ class CurriculumConfig:
     stages: list[int] = field(default_factory=list)
     #: a stage ends after this many training steps (rounded up to whole epochs); None: no step limit
     stage_steps: int | None = None
-    #: a stage ends once the prefix-swap gap (nats/token) reaches this; None: not used
+    #: a stage ends once the prefix-swap gap (nats/token) on its validation programs reaches this; None: not used
     advance_gap: float | None = None
     #: a stage ends once the token accuracy on its validation programs reaches this; None: not used
     advance_acc: float | None = None
@@ -116,8 +117,9 @@ class Curriculum:
         return np.isin(np.arange(len(self.val_complexity)), pool(self.val_complexity, self.max_complexity))
 
     def end_epoch(self, steps: int, metrics: dict[str, float]) -> dict[str, float]:
-        """After an epoch of ``steps`` steps with validation ``metrics`` (``prefix_gap``, ``stage_val_loss``,
-        ``stage_val_acc``): advance if a rule says so. Returns the history columns of the epoch."""
+        """After an epoch of ``steps`` steps with validation ``metrics`` (``stage_prefix_gap``, else
+        ``prefix_gap``; ``stage_val_loss``, ``stage_val_acc``): advance if a rule says so. Returns the history
+        columns of the epoch."""
         row = {"curriculum_stage": float(self.stage)}
         if self.final:
             return row
@@ -128,8 +130,9 @@ class Curriculum:
             self.best_loss, self.stale = loss, 0
         else:
             self.stale += 1
+        gap = metrics.get("stage_prefix_gap", metrics.get("prefix_gap", -np.inf))
         advance = (cfg.stage_steps is not None and self.stage_steps >= cfg.stage_steps) \
-            or (cfg.advance_gap is not None and metrics.get("prefix_gap", -np.inf) >= cfg.advance_gap) \
+            or (cfg.advance_gap is not None and gap >= cfg.advance_gap) \
             or (cfg.advance_acc is not None and metrics.get("stage_val_acc", -np.inf) >= cfg.advance_acc) \
             or (cfg.stage_patience is not None and self.stale >= cfg.stage_patience)
         if advance:

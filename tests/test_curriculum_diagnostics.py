@@ -113,7 +113,9 @@ def test_stages_advance_by_steps_gap_accuracy_or_patience_and_round_trip():
     assert cur.stage == 0
     cur.end_epoch(50, {"prefix_gap": 0.1, "stage_val_loss": 1.0})    # 100 steps
     assert cur.stage == 1 and cur.stage_steps == 0
-    cur.end_epoch(10, {"prefix_gap": 0.25, "stage_val_loss": 1.0})   # the gap threshold
+    cur.end_epoch(10, {"prefix_gap": 0.25, "stage_prefix_gap": 0.1, "stage_val_loss": 1.0})
+    assert cur.stage == 1   # the stage's own gap decides
+    cur.end_epoch(10, {"prefix_gap": 0.1, "stage_prefix_gap": 0.25, "stage_val_loss": 1.0})   # the gap threshold
     assert cur.stage == 2 and cur.final and cur.max_complexity is None
     row = cur.end_epoch(1000, {"prefix_gap": 0.0})
     assert cur.stage == 2 and row == {"curriculum_stage": 2.0}       # the final stage lasts
@@ -298,6 +300,6 @@ def test_pretraining_with_the_curriculum_resumes_in_its_stage(tmp_path):
     header = rows[0][0].split(",")
     stage = [float(r.split(",")[header.index("curriculum_stage")]) for r in rows[0][1:]]
     assert stage == [0.0, 0.0, 1.0, 1.0]   # the stage each epoch trained in: two epochs of 3 steps per stage
-    assert {"prefix_gap", "stage_val_loss", "stage_val_acc", "val_chamfer"} <= set(header)
+    assert {"prefix_gap", "stage_prefix_gap", "stage_val_loss", "stage_val_acc", "val_chamfer"} <= set(header)
     a, b = (torch.load(tmp_path / r / "runs/pretrain/csg2d" / LAST, weights_only=False)["state_dict"] for r in "ab")
     assert all(torch.equal(a[k], b[k]) for k in a)

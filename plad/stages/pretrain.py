@@ -11,7 +11,8 @@ first ``gap_programs`` validation programs, and ``real_val_<metric>``, the
 greedy metric on ``real_val_shapes`` real validation shapes (evenly spaced
 over the prepared ``val`` split). With ``curriculum.enabled`` the batches
 follow :mod:`plad.curriculum` (stage and per-stage validation in the
-history: ``curriculum_stage``, ``stage_val_loss``, ``stage_val_acc``).
+history: ``curriculum_stage``, ``stage_val_loss``, ``stage_val_acc``,
+``stage_prefix_gap``: the same on the validation programs of the stage).
 
 Outputs in ``runs/pretrain/<domain>/`` (:mod:`plad.layout`): ``best.pt``
 (the model), ``last.pt`` (resume state), ``history.csv`` (per-epoch
@@ -170,6 +171,8 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
             rows = val[torch.from_numpy(curriculum.val_mask())]
             out["stage_val_loss"], out["stage_val_acc"] = (loss, acc) if curriculum.final else val_loss(
                 m, [make_batch(domain, rows[i:i + bs], device) for i in range(0, len(rows), bs)])
+            out["stage_prefix_gap"] = out["prefix_gap"] if curriculum.final or len(rows) < 2 else \
+                prefix_gap(m, *make_batch(domain, rows[: max(2, cfg.gap_programs)], device))
         return out
 
     def record(unit: int, row: dict[str, float]) -> None:
