@@ -47,9 +47,19 @@ class Architecture:
     coord_channels: bool = False
     #: encoder kernel size (None: 3 in 2D, the paper's 4 in 3D); padding is kernel // 2
     enc_kernel: int | None = None
+    #: initialization of the encoder convolutions: "default" (torch's, uniform with a = sqrt(5): the
+    #: activations shrink by about half per block, so the visual tokens of different shapes start out
+    #: nearly equal) or "kaiming" (He normal for ReLU, zero bias: the variance is kept through the blocks)
+    enc_init: str = "default"
+    #: condition the BOS token on the input: BOS's embedding plus a linear map of the mean visual token.
+    #: The first program token then sees the shape through its own input as well as through attention,
+    #: which early in training collapses onto BOS itself (issue 14)
+    prefix_bos: bool = False
 
     def __post_init__(self) -> None:
         self.enc_channels = tuple(self.enc_channels)
+        if self.enc_init not in ("default", "kaiming"):
+            raise ValueError(f"enc_init {self.enc_init!r}: use 'default' or 'kaiming'")
         if self.d_model % self.n_heads:
             raise ValueError(f"d_model {self.d_model} must be divisible by n_heads {self.n_heads}")
 
@@ -59,7 +69,9 @@ class ModelConfig(Architecture):
     """Everything :class:`PLADNet` is built from: the architecture plus the domain's sizes. Stored in every checkpoint.
 
     A flat dict (``to_dict``), the same keys as before the architecture had its
-    own class, so that every checkpoint loads with ``ModelConfig(**config)``.
+    own class, so that every checkpoint loads with ``ModelConfig(**config)``; a
+    knob added later defaults to the behaviour before it, so an older checkpoint
+    (without its key) loads as the network it was.
     """
 
     vocab_size: int                    # number of domain tokens (output classes)
@@ -120,6 +132,12 @@ class CNNEncoder(nn.Module):
             layers += [nn.ReLU(), pool(2), drop(cfg.dropout)]
             c_in = c
         self.net = nn.Sequential(*layers)
+        if cfg.enc_init == "kaiming":
+            for m in self.net:
+                if isinstance(m, conv):
+                    nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                    if m.bias is not None:
+                        nn.init.zeros_(m.bias)
         if cfg.coord_channels:
             axes = torch.meshgrid(*(torch.linspace(-1, 1, n) for n in cfg.input_shape), indexing="ij")
             self.register_buffer("coords", torch.stack(axes)[None], persistent=False)  # (1, dims, *spatial)
@@ -195,6 +213,15 @@ class PLADNet(nn.Module):
         self.ln = nn.LayerNorm(cfg.d_model)
         self.head = nn.Sequential(nn.Linear(cfg.d_model, cfg.d_model), nn.ReLU(), nn.Dropout(cfg.dropout),
                                   nn.Linear(cfg.d_model, cfg.vocab_size))
+        # prefix_bos: mean visual token (N, d) -> an addition to BOS's embedding (N, d)
+        self.bos_proj = nn.Linear(cfg.d_model, cfg.d_model) if cfg.prefix_bos else None
+
+    def _bos(self, prefix: torch.Tensor) -> torch.Tensor:
+        """The BOS input (N, 1, d) for visual prefix (N, P, d)."""
+        bos = self.embed.weight[self.cfg.bos].expand(len(prefix), 1, -1)
+        if self.bos_proj is not None:
+            bos = bos + self.bos_proj(prefix.mean(1))[:, None, :]
+        return bos
 
     # ---- teacher forcing --------------------------------------------------------
     def encode(self, shapes: torch.Tensor) -> torch.Tensor:
@@ -213,7 +240,10 @@ class PLADNet(nn.Module):
     def forward_prefix(self, prefix: torch.Tensor, tokens_in: torch.Tensor) -> torch.Tensor:
         """prefix (N, P, d), tokens_in (N, T) starting with BOS -> logits (N, T, V)."""
         P, T = prefix.shape[1], tokens_in.shape[1]
-        x = torch.cat([prefix, self.embed(tokens_in)], dim=1) + self.pos[: P + T]
+        emb = self.embed(tokens_in)                                 # (N, T, d)
+        if self.bos_proj is not None:   # tokens_in[:, 0] is BOS
+            emb = torch.cat([self._bos(prefix), emb[:, 1:]], 1)
+        x = torch.cat([prefix, emb], dim=1) + self.pos[: P + T]
         mask = self._mask(T, x.device)
         for layer in self.layers:
             x, _ = layer(x, mask)
@@ -244,9 +274,8 @@ class PLADNet(nn.Module):
     # ---- incremental decoding -------------------------------------------------------
     def start(self, prefix: torch.Tensor) -> tuple[torch.Tensor, list]:
         """Run the visual prefix and the BOS token: (logits (N, V) for the first token, caches)."""
-        N, P, _ = prefix.shape
-        bos = torch.full((N, 1), self.cfg.bos, dtype=torch.long, device=prefix.device)
-        x = torch.cat([prefix, self.embed(bos)], dim=1) + self.pos[: P + 1]
+        P = prefix.shape[1]
+        x = torch.cat([prefix, self._bos(prefix)], dim=1) + self.pos[: P + 1]
         mask = self._mask(1, x.device)
         caches = []
         for layer in self.layers:

@@ -22,7 +22,7 @@ import random
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -63,6 +63,10 @@ class TrainConfig:
     grad_clip: float = 1.0
     #: batches drawn together and grouped by program length (:mod:`plad.batching`); 1: plain random batches
     bucket_pool: int = 1
+    #: linear learning-rate warm-up from lr / warmup_steps to lr over the first steps (0: none); the
+    #: plateau schedule starts once it is over. Early large steps let the decoder settle on the programs'
+    #: statistics before the encoder's signal arrives (issue 14)
+    warmup_steps: int = 0
 
 
 def _rng_state() -> dict:
@@ -77,13 +81,32 @@ def _set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
 
 
+class Stages(Protocol):
+    """A training schedule in stages that :func:`fit` consults and checkpoints (:class:`plad.curriculum.Curriculum`).
+
+    Until ``final``, the loop's patience does not run and the plateau schedule does not reduce the learning
+    rate. ``end_epoch(steps, metrics)`` runs on every rank with rank 0's metrics and returns extra history
+    columns; the state is part of ``last.pt``.
+    """
+
+    @property
+    def final(self) -> bool: ...
+
+    def end_epoch(self, steps: int, metrics: dict[str, float]) -> dict[str, float]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
 class _LastCheckpoint:
     """The loop's store for :func:`fit`: weights, optimizer, schedule, RNGs and loop state in one atomic ``last.pt``."""
 
     def __init__(self, path: Path, model: PLADNet, opt, sched, domain: str, token_names: list[str],
-                 fingerprint: dict | None):
+                 fingerprint: dict | None, stages: Stages | None = None):
         self.path, self.model, self.opt, self.sched = path, model, opt, sched
         self.domain, self.token_names, self.fingerprint = domain, token_names, fingerprint
+        self.stages = stages
 
     def load(self) -> dict[str, Any] | None:
         payload = read_checkpoint(self.path) if self.path.exists() else None
@@ -96,13 +119,16 @@ class _LastCheckpoint:
         self.opt.load_state_dict(payload["optimizer"])
         self.sched.load_state_dict(payload["scheduler"])
         _set_rng_state(payload["rng"])
+        if self.stages is not None and payload.get("stages") is not None:
+            self.stages.load_state_dict(payload["stages"])
         # "train_state": a last.pt written before plad.loop (same meaning, other key names)
         return payload["loop"] if "loop" in payload else upgrade_state(payload["train_state"], "epoch")
 
     def commit(self, state: dict[str, Any]) -> None:
         save_checkpoint(self.path, self.model, self.domain, self.token_names, {
             "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(), "loop": state,
-            "rng": _rng_state(), "fingerprint": self.fingerprint})
+            "rng": _rng_state(), "fingerprint": self.fingerprint,
+            "stages": self.stages.state_dict() if self.stages is not None else None})
 
 
 def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
@@ -111,7 +137,7 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         budget_seconds: float = math.inf,
         on_unit: Callable[[int, dict[str, Any]], None] | None = None,
         loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None,
-        desc: str = "train", fingerprint: dict | None = None) -> LoopResult:
+        desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None) -> LoopResult:
     """Train until early stopping, ``max_epochs`` or the time budget; resume from ``out_dir/last.pt``.
 
     ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
@@ -124,7 +150,9 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     ``model`` at the end. ``budget_seconds`` counts training time across
     resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
     validation metrics, ``lr``). ``fingerprint`` identifies the run's settings:
-    a ``last.pt`` written under another fingerprint is not resumed.
+    a ``last.pt`` written under another fingerprint is not resumed. ``stages``
+    (e.g. a curriculum, which ``batches`` reads) is told each epoch's metrics
+    and saved with ``last.pt``; see :class:`Stages`.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -141,7 +169,11 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
             torch.manual_seed(dist.rank_seed(seed * 1_000_003 + unit))
         total, total_acc = 0.0, 0.0
         it = batches(unit - 1)   # batch streams are numbered from 0
-        for _ in range(cfg.steps_per_epoch):
+        for i in range(cfg.steps_per_epoch):
+            step = (unit - 1) * cfg.steps_per_epoch + i
+            if step < cfg.warmup_steps:   # linear warm-up; the plateau schedule takes over after it
+                for group in opt.param_groups:
+                    group["lr"] = cfg.lr * (step + 1) / cfg.warmup_steps
             batch = next(it)
             loss, acc = step_loss(batch)
             opt.zero_grad(set_to_none=True)
@@ -156,8 +188,12 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         metrics.update(validate(model))
         metrics = dist.broadcast(metrics)   # rank 0's values drive the schedule on every rank
         value = metrics[objective.name]
-        sched.step(value)
-        return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]})
+        final = stages is None or stages.final   # the stage this epoch trained in
+        if stages is not None:
+            metrics.update(stages.end_epoch(cfg.steps_per_epoch, metrics))
+        if final and unit * cfg.steps_per_epoch >= cfg.warmup_steps:
+            sched.step(value)
+        return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]}, patience=1 if final else 0)
 
     def keep_best(unit: int, value: float) -> None:
         if dist.is_main():
@@ -166,6 +202,6 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     def restore_best() -> None:
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
-    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint)
+    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint, stages)
     loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, budget_seconds), store)
     return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit, progress=desc)

@@ -119,6 +119,22 @@ class Domain(abc.ABC):
         """
         raise NotImplementedError(f"domain {self.name} has no floor baseline")
 
+    #: the token kind (:attr:`plad.grammar.Token.kind`) whose count is a program's complexity, the
+    #: structural size the synthetic sampler stratifies by and the pretraining curriculum orders by
+    #: (primitives of CSG, cuboids of ShapeAssembly); None: the domain offers no complexity
+    complexity_kind: str | None = None
+
+    def complexity(self, programs: np.ndarray) -> np.ndarray:
+        """Complexity of -1-padded token rows (N, L): (N,) int, the number of :attr:`complexity_kind` tokens.
+
+        Raises ``ValueError`` if the domain offers no complexity.
+        """
+        if self.complexity_kind is None:
+            raise ValueError(f"domain {self.name} defines no program complexity (complexity_kind)")
+        kinds = np.array([t.kind == self.complexity_kind for t in self.tokens.tokens] + [False])
+        programs = np.asarray(programs)
+        return kinds[np.where(programs >= 0, programs, len(kinds) - 1)].sum(1).astype(np.int64)
+
     # -- real data -----------------------------------------------------------------
     @property
     @abc.abstractmethod

@@ -6,6 +6,15 @@ the fly; batches group programs of similar length (``train.bucket_pool``,
 validation loss on the held-out synthetic programs; the greedy-decoding
 metric on some of them is logged too. Resumable (see :mod:`plad.train`).
 
+Whether the network reads its input is logged every epoch
+(:mod:`plad.diagnostics`): ``prefix_gap``, the prefix-swap loss gap on the
+first ``gap_programs`` validation programs, and ``real_val_<metric>``, the
+greedy metric on ``real_val_shapes`` real validation shapes (evenly spaced
+over the prepared ``val`` split). With ``curriculum.enabled`` the batches
+follow :mod:`plad.curriculum` (stage and per-stage validation in the
+history: ``curriculum_stage``, ``stage_val_loss``, ``stage_val_acc``,
+``stage_prefix_gap``: the same on the validation programs of the stage).
+
 Outputs in ``runs/pretrain/<domain>/`` (:mod:`plad.layout`): ``best.pt``
 (the model), ``last.pt`` (resume state), ``history.csv`` (per-epoch
 metrics), ``summary.json``.
@@ -31,7 +40,9 @@ from plad import distributed as dist
 from plad.batching import bucketed, trim
 from plad.checkpoint import read_checkpoint
 from plad.config import ConfigError
+from plad.curriculum import Curriculum, CurriculumConfig
 from plad.device import resolve_device
+from plad.diagnostics import prefix_gap
 from plad.domains.base import pad_programs, split_padding
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, HISTORY, LAST, SUMMARY, Layout
@@ -51,17 +62,45 @@ class PretrainConfig:
     seed: int = 0
     #: synthetic validation shapes decoded greedily each epoch for the domain metric
     val_metric_shapes: int = 200
+    #: validation programs of the prefix-swap gap (plad.diagnostics), the first ones of the split
+    gap_programs: int = 128
+    #: real validation shapes decoded greedily each epoch (evenly spaced over the split; 0: none)
+    real_val_shapes: int = 0
     #: budget of training time, minutes, counted across resumes (None: none)
     max_minutes: float | None = None
     model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
 
 
 def load_programs(path: Path) -> dict[str, torch.Tensor]:
+    """``train``/``val`` token rows (N, L) int64, -1-padded, and their complexities where the file has them."""
     if not path.exists():
         raise ConfigError(f"{path}: synthetic programs not found; run the synthesize stage first")
     with np.load(path) as z:
-        return {k: torch.from_numpy(z[k].astype(np.int64)) for k in ("train", "val")}
+        return {k: torch.from_numpy(z[k].astype(np.int64))
+                for k in ("train", "val", "train_complexity", "val_complexity") if k in z.files}
+
+
+def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(train, val) program complexities: from the synthetic file, or computed for a file written before it
+    recorded them."""
+    if domain.complexity_kind is None:
+        raise ConfigError(f"{path}: curriculum.enabled, but domain {domain.name} defines no program complexity")
+    return tuple(data[f"{s}_complexity"].numpy() if f"{s}_complexity" in data
+                 else domain.complexity(data[s].numpy()) for s in ("train", "val"))
+
+
+def real_val_shapes(path: Path, n: int) -> torch.Tensor:
+    """``n`` real validation shapes, evenly spaced over the prepared split (which is ordered, e.g. by category)."""
+    from plad.data import load_prepared
+
+    if not path.exists():
+        raise ConfigError(f"{path}: prepared real shapes not found (real_val_shapes: {n}); run the prepare stage "
+                          f"first or set real_val_shapes: 0")
+    val = load_prepared(path, "val")
+    idx = np.unique(np.linspace(0, len(val) - 1, min(n, len(val))).round().astype(int))
+    return torch.from_numpy(np.asarray(val[idx]))
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
@@ -85,6 +124,10 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     torch.manual_seed(cfg.seed)
     data = load_programs(layout.synthetic(cfg.domain))
     train, val = data["train"], data["val"]
+    curriculum = Curriculum(cfg.curriculum, *complexities(domain, data, layout.synthetic(cfg.domain))) \
+        if cfg.curriculum.enabled else None
+    real = real_val_shapes(layout.prepared(cfg.domain), cfg.real_val_shapes).to(device) \
+        if cfg.real_val_shapes else None
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
@@ -95,6 +138,9 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
 
     def indices(epoch: int) -> Iterator[np.ndarray]:
         # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
+        if curriculum is not None:   # the stage's mix with replay; every rank draws its own part
+            yield from curriculum.indices(epoch, cfg.seed, bs)
+            return
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         while True:
             perm = torch.randperm(len(train), generator=gen)
@@ -108,20 +154,38 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
             yield make_batch(domain, train[torch.from_numpy(idx)], device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
+    gap_batch = make_batch(domain, val[: max(2, cfg.gap_programs)], device)   # fixed: comparable across epochs
     metric = domain.metric
+
+    def val_loss(m: PLADNet, batches) -> tuple[float, float]:
+        """Token-weighted mean loss and accuracy over batches."""
+        tot, acc, n = 0.0, 0.0, 0
+        for shapes, programs, lengths in batches:
+            loss, a = m.loss(shapes, programs, lengths)
+            k = int(lengths.sum())
+            tot, acc, n = tot + float(loss) * k, acc + float(a) * k, n + k
+        return tot / n, acc / n
+
+    def greedy_metric(m: PLADNet, shapes: torch.Tensor) -> float:
+        decoded = greedy_decode(m, domain.tokens, shapes)
+        return float(metric(domain.execute(pad_programs(decoded, device=device)), shapes).mean())
 
     @torch.no_grad()
     def validate(m: PLADNet) -> dict[str, float]:
         m.eval()
-        tot, acc, n = 0.0, 0.0, 0
-        for shapes, programs, lengths in val_batches:
-            loss, a = m.loss(shapes, programs, lengths)
-            k = int(lengths.sum())
-            tot, acc, n = tot + float(loss) * k, acc + float(a) * k, n + k
+        loss, acc = val_loss(m, val_batches)
         shapes = torch.cat([b[0] for b in val_batches])[: cfg.val_metric_shapes]
-        decoded = greedy_decode(m, domain.tokens, shapes)
-        values = metric(domain.execute(pad_programs(decoded, device=device)), shapes)
-        return {"val_loss": tot / n, "val_acc": acc / n, f"val_{metric.name}": float(values.mean())}
+        out = {"val_loss": loss, "val_acc": acc, f"val_{metric.name}": greedy_metric(m, shapes),
+               "prefix_gap": prefix_gap(m, *gap_batch)}
+        if real is not None:
+            out[f"real_val_{metric.name}"] = greedy_metric(m, real)
+        if curriculum is not None:   # the stage's own validation programs (the final stage's: all)
+            rows = val[torch.from_numpy(curriculum.val_mask())]
+            out["stage_val_loss"], out["stage_val_acc"] = (loss, acc) if curriculum.final else val_loss(
+                m, [make_batch(domain, rows[i:i + bs], device) for i in range(0, len(rows), bs)])
+            out["stage_prefix_gap"] = out["prefix_gap"] if curriculum.final or len(rows) < 2 else \
+                prefix_gap(m, *make_batch(domain, rows[: max(2, cfg.gap_programs)], device))
+        return out
 
     def record(unit: int, row: dict[str, float]) -> None:
         # history.csv keeps its columns (DVC plots it: x epoch, y val_loss); the loop's own
@@ -142,6 +206,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
                    "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
+                   "warmup_steps": cfg.train.warmup_steps, "curriculum": asdict(cfg.curriculum),
                    # buckets change the batches (plain batches keep the fingerprint of earlier versions)
                    **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {})}
     last = out / LAST
@@ -150,7 +215,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     start = time.monotonic()
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
                  budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
-                 fingerprint=fingerprint)
+                 fingerprint=fingerprint, stages=curriculum)
     final = validate(model)
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),

@@ -3,7 +3,9 @@
 Writes ``data/synthetic/<domain>.npz`` (:mod:`plad.layout`) with ``train``/``val`` token arrays
 (N, max_len) int16 padded with -1, drawn with a fixed seed (train and val
 from independent streams) and rewritten into the domain's canonical form
-(:meth:`plad.domains.base.Domain.canonical`). Shapes are not stored: the executor renders them
+(:meth:`plad.domains.base.Domain.canonical`), and, where the domain defines a complexity
+(:meth:`plad.domains.base.Domain.complexity`), ``train_complexity``/``val_complexity``
+(N,) int16: what the pretraining curriculum orders by. Shapes are not stored: the executor renders them
 on the fly far faster than they could be read back.
 """
 from __future__ import annotations
@@ -52,10 +54,16 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
             programs = [domain.canonical(p) for p in domain.sample(min(chunk, n - start), rng)]
             parts.append(to_array(programs, domain.tokens.max_len))
         arrays[split] = np.concatenate(parts) if parts else np.zeros((0, domain.tokens.max_len), np.int16)
+    if domain.complexity_kind is not None:
+        for split in ("val", "train"):
+            arrays[f"{split}_complexity"] = domain.complexity(arrays[split]).astype(np.int16)
     atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)
     summary = {"domain": cfg.domain, "train": int(len(arrays["train"])), "val": int(len(arrays["val"])),
                "mean_length": round(float(lengths.mean()), 3) if len(lengths) else 0.0}
+    if "train_complexity" in arrays and len(lengths):
+        values, counts = np.unique(arrays["train_complexity"], return_counts=True)
+        summary["train_complexity"] = {int(v): int(c) for v, c in zip(values, counts)}
     atomic_write_text(layout.synthetic_summary(cfg.domain), json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -281,7 +281,9 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         return set(), rel([layout.synthetic(domain), layout.synthetic_summary(domain)])
     if stage.group == "pretrain":
         out = layout.pretrain_dir(domain)
-        return rel([layout.synthetic(domain)]), rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY])
+        # the prepared real shapes: the input-dependence diagnostic's real validation shapes
+        return rel([layout.synthetic(domain), layout.prepared(domain)]), \
+            rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY])
     if stage.group == "search_only":
         out = layout.eval_dir(SEARCH, domain)
         splits = p["search_only"][domain]["splits"]

@@ -21,6 +21,8 @@ from plad.metrics import Metric, chamfer_metric
 class CSG2D(Domain):
     name = "csg2d"
     shape = (CANVAS, CANVAS)
+    #: complexity: the number of draw tokens (primitives), what the sampler stratifies by
+    complexity_kind = "draw"
     title = "2D CSG"
     # Chamfer distance in pixels, shown as it is
     display_scale, display_digits = 1.0, 3

@@ -4,7 +4,7 @@ Canonical form (docs/domains.md, "Canonical programs"): the operands of ``+``
 (union) and ``*`` (intersection) are ordered by their token sequences,
 smaller first; ``-`` keeps its order. Draw tokens need no snapping: the 424
 tokens of the vocabulary render 424 distinct bitmaps (checked by
-``tests/test_canonical.py``), so no two of them are interchangeable.
+``tests/plad/domains/test_canonical.py``), so no two of them are interchangeable.
 
 The one-primitive floor is, per target, the draw token whose canvas has the
 best Chamfer distance to it. Every draw token's edges and distance map are

@@ -30,6 +30,8 @@ from plad.metrics import IOU, Metric
 class CSG3D(Domain):
     name = "csg3d"
     shape = (RES, RES, RES)
+    #: complexity: the number of primitives, what the sampler stratifies by
+    complexity_kind = "primitive"
     title = "3D CSG"
     # IoU shown in percent, as in the paper
     display_scale, display_digits = 100.0, 1

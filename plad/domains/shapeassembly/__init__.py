@@ -52,6 +52,8 @@ def token_cuboids(ids: Sequence[int]) -> np.ndarray:
 class ShapeAssembly(Domain):
     name = "shapeassembly"
     shape = (RES, RES, RES)
+    #: complexity: the number of cuboids (parts), what the sampler stratifies by
+    complexity_kind = "cuboid"
     title = "ShapeAssembly"
     # IoU shown in percent, as in the paper
     display_scale, display_digits = 100.0, 1
