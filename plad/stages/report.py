@@ -74,6 +74,17 @@ class ReportConfig:
     #: the beams of the amortization sweep (the top-level ``beams``)
     beams: list[int] = field(default_factory=lambda: [1, 5, 10])
 
+    def __post_init__(self) -> None:
+        # the typed loader checks the containers, not their items: result keys are looked up and hashed
+        for name in ("methods", "beyond"):
+            bad = [k for k in getattr(self, name) if not isinstance(k, str)]
+            if bad:
+                raise ValueError(f"{name}: {bad[0]!r} is not a result key (a method name)")
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in self.per_round.items()):
+            raise ValueError(f"per_round {self.per_round!r}: expected method name -> method name")
+        if not all(isinstance(b, int) and not isinstance(b, bool) and b >= 1 for b in self.beams):
+            raise ValueError(f"beams {self.beams!r}: expected positive integers")
+
 
 def gather(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
     """{domain: [MethodResult per method]} from the configured source."""
@@ -106,12 +117,18 @@ def champion(cfg: ReportConfig, domain: str, results) -> tuple[str, float] | Non
     return best
 
 
-def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
+def gather_complete(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
+    """:func:`gather`, or a :class:`DataError` naming every method and domain without a test evaluation."""
     results = gather(cfg, layout)
     missing = [f"{d}/{r.key}" for d, rs in results.items() for r in rs if r.test is None]
     if missing:
         where = "MLflow" if cfg.source == "mlflow" else layout.results_dir
         raise DataError(where, f"no test evaluation for {', '.join(missing)}")
+    return results
+
+
+def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
+    results = gather_complete(cfg, layout)
     out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
     if cfg.source == "mlflow":
@@ -147,6 +164,8 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
 def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dict:
     """:func:`report` as an MLflow run; registers each domain's champion as ``plad-<domain>@champion``."""
     out = ctx.layout.results_dir
+    if cfg.source == "files":
+        gather_complete(cfg, ctx.layout)   # missing evaluations fail before an MLflow run (or store) exists
     with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run", params_path=ctx.params) as run:
         summary = report(cfg, ctx.layout)
         for name in [TABLE, CONVERGENCE, REPORT, AMORTIZATION_TABLE, AMORTIZATION_PLOT]:

@@ -99,7 +99,8 @@ def test_infer_uses_the_shipped_model_from_any_directory_and_creates_no_store(sh
     assert res.returncode == 0, res.stderr
     assert "model: shipped csg2d model (sp, test chamfer" in res.stderr and str(shipped) in res.stderr
     assert sorted(p.name for p in cwd.iterdir()) == ["inferred"]     # no mlflow.db, no mlruns/
-    assert (cwd / "inferred" / "shape.txt").read_text().strip().endswith("$")
+    (run,) = (cwd / "inferred").iterdir()   # the run's own folder (plad.infer.new_run_dir)
+    assert (run / "shape.txt").read_text().strip().endswith("$")
 
 
 def test_an_unconfigured_sqlite_store_is_not_created(shipped, tmp_path):

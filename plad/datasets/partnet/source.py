@@ -41,7 +41,7 @@ def read_source(tar_path: str | os.PathLike) -> tuple[dict[tuple[str, str], str]
                 official[(parts[1], parts[2][:-4])] = ids
     missing = [f"splits/{c}/{s}.txt" for c in CATEGORIES for s in ("train", "val") if (c, s) not in official]
     if missing:
-        raise ValueError(f"{tar_path}: missing split lists {', '.join(missing)}")
+        raise DataError(tar_path, f"missing split lists {', '.join(missing)}")
 
     def key(cat_id: tuple[str, str]):
         return CATEGORIES.index(cat_id[0]), int(cat_id[1]) if cat_id[1].isdigit() else cat_id[1]
