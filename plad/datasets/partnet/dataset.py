@@ -200,7 +200,8 @@ class PartNetTargets(TargetSource):
         except (tarfile.TarError, EOFError, OSError) as err:
             raise DataError(source, f"not a readable .tar.gz ({err.__class__.__name__}: {err})") from None
         report["seconds"] = round(time.monotonic() - start, 1)
-        report["source"] = str(source)
+        # provenance without machine paths: the file's name and its verified sha256
+        report["source"] = {"file": source.name, "sha256": SOURCE_SHA256}
         atomic_write_text(out / REPORT_NAME, json.dumps(report, indent=2) + "\n")
         atomic_write_text(out / FAILURES_NAME, "".join(f"{f['program']}\t{f['reason']}\n" for f in report["failures"]))
         with np.load(out / PREPARED_NAME) as z:
