@@ -13,6 +13,7 @@ plugin (DVC cannot template a list per domain).
 """
 from __future__ import annotations
 
+import importlib
 import shlex
 import shutil
 from dataclasses import dataclass, field
@@ -187,9 +188,9 @@ def test_the_pipeline_has_every_stage_of_every_domain_and_method():
     p = params()
     names = {s.name for s in stages()}
     assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate", "search_only",
-                                                                  "evaluate_refined") for d in p["domains"]} | \
-        {f"{g}@{d}-{m}" for g in ("finetune", "evaluate_finetuned") for d in p["domains"] for m in p["methods"]} | \
-        {f"evaluate_beams@{d}-{b}" for d in p["domains"] for b in p["beams"]}
+                                                                  "evaluate_finetuned", "evaluate_refined")
+                                             for d in p["domains"]} | \
+        {f"finetune@{d}-{m}" for d in p["domains"] for m in p["methods"]}
 
 
 def test_every_stage_depends_on_the_code_it_imports_and_no_other():
@@ -234,6 +235,8 @@ def read_keys(stage: Stage) -> set[str]:
     else:
         keys = set(leaves(raw[top], top))
     keys |= {k for k in INJECTED.get(top, ()) if k in raw}
+    # top-level keys a stage reads itself (e.g. evaluate_finetuned: every method's model and the sweep's beams)
+    keys |= {k for k in getattr(importlib.import_module(stage.module), "TOP_LEVEL_PARAMS", ()) if k in raw}
     if top == "finetune":   # a fine-tuning stage reads the entry of its method only
         method = stage.sets["key"]
         keys = {k for k in keys if ".methods." not in k or k.split(".methods.")[1].split(".")[0] == method}
@@ -288,7 +291,13 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         out = layout.eval_dir(SEARCH, domain)
         splits = p["search_only"][domain]["splits"]
         return rel([layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / METRICS])
-    if stage.group in ("evaluate", "evaluate_finetuned", "evaluate_refined", "evaluate_beams"):
+    if stage.group == "evaluate_finetuned":   # every method's model, then the sweep's beams, in one stage
+        sweep = stage.option("--sweep-method")
+        keys = [*p["methods"], *(eval_key(sweep, beam=b) for b in p["beams"])]
+        splits = p["evaluate"][domain]["splits"]
+        outs = [layout.eval_dir(k, domain) / f for k in keys for f in (*map(programs_csv, splits), GRID, METRICS)]
+        return rel([*(layout.finetune_dir(domain, m) for m in p["methods"]), layout.prepared(domain)]), rel(outs)
+    if stage.group in ("evaluate", "evaluate_refined"):
         sweep = stage.sets.get("sweep_beam")
         out = layout.eval_dir(eval_key(method, int(sweep) if sweep else None, stage.sets.get("refine") == "true"),
                               domain)
