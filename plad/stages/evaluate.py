@@ -65,7 +65,7 @@ class EvaluateConfig:
     refine_config: dict = field(default_factory=dict)
     #: refinement worker processes (one thread each)
     refine_workers: int = 1
-    #: a beam of the amortization sweep (set by the evaluate_beams stages): used instead of ``beam``
+    #: a beam of the amortization sweep (set per beam by the evaluate_finetuned stages): used instead of ``beam``
     sweep_beam: int | None = None
 
 

@@ -50,7 +50,7 @@ from plad.tracking import StageRun, champion_tags, set_champion, set_version_tag
 
 @dataclass
 class AmortizationConfig:
-    #: the method whose model the evaluate_beams and evaluate_refined stages evaluate
+    #: the method whose model the evaluate_refined stages and evaluate_finetuned's beam sweep evaluate
     method: str = "lest_st_ws_search"
 
 
