@@ -85,6 +85,12 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     assert {"pretrain", "evaluate", "finetune", "report"} <= stages
     assert (runs["status"] == "FINISHED").all()
     assert runs["tags.plad.pipeline"].nunique() == 1  # one repro, one group
+    # one MLflow run per evaluation, also where one stage process evaluates every model (evaluate_finetuned@<d>)
+    evaluated = runs[runs["tags.plad.stage"] == "evaluate"]
+    for domain in DOMAINS:
+        keys = set(evaluated[evaluated["tags.plad.domain"] == domain]["tags.plad.method"])
+        assert keys == {"sp", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
+                        *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10))}
     finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
     for domain in DOMAINS:
         mine = finetuned[finetuned["tags.plad.domain"] == domain]
