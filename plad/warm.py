@@ -20,7 +20,7 @@ had imported (the project's code is always read fresh), and runs MODULE as ``__m
 reports the stage's pid (the client forwards SIGINT/SIGTERM/SIGHUP to it) and its exit status, which
 the client exits with (a signal death: the client kills itself with the same signal). A client that
 goes away (killed) takes its stage with it. The server exits after ``$PLAD_WARM_IDLE`` seconds
-(default 30) without a request. If the server cannot be reached or started, the client runs the
+(default 120) without a request. If the server cannot be reached or started, the client runs the
 command cold (``exec python -m MODULE ARGS``) after a one-line warning.
 
 What differs from a cold ``python -m``: MLflow's telemetry is off in the server (its thread would not
@@ -356,7 +356,7 @@ def main(argv: list[str]) -> int:
             os.kill(os.getpid(), -code)
         return code
     if len(argv) == 2 and argv[0] == "serve":
-        serve(Path(argv[1]), float(os.environ.get("PLAD_WARM_IDLE", "30")))
+        serve(Path(argv[1]), float(os.environ.get("PLAD_WARM_IDLE", "120")))
         return 0
     if len(argv) == 2 and argv[0] == "shim":
         print(write_shim(Path(argv[1])))
