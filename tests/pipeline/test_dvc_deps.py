@@ -16,6 +16,7 @@ from __future__ import annotations
 import importlib
 import shlex
 import shutil
+import subprocess
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -336,3 +337,16 @@ def test_dvc_paths_are_the_layouts():
         assert not uncovered, f"{stage.name} reads {uncovered}, not among its dvc.yaml deps {data}"
         for dep in data:
             assert any(covers(dep, f) for f in inputs), f"{stage.name}: dep {dep} is none of its inputs {inputs}"
+
+
+def test_no_output_in_the_dvc_cache_is_also_tracked_by_git():
+    """A DVC-cached output that git also tracks stops every `dvc repro` of its stage ("already tracked by
+    SCM"), e.g. a file committed from a run in another clone without its .gitignore entry."""
+    from dvc.repo import Repo
+
+    tracked = set(subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True,
+                                 check=True).stdout.splitlines())
+    with Repo(str(REPO)) as repo:
+        both = sorted(o.def_path for st in repo.index.stages for o in st.outs
+                      if o.use_cache and o.def_path in tracked)
+    assert not both, f"in the DVC cache and tracked by git (git rm --cached them, .gitignore them): {both}"
