@@ -104,11 +104,22 @@ def _git(root: Path, *args: str) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
+def _portable(path: Path, base: Path) -> str:
+    """``path`` as the sidecar records it: relative to ``base`` (the layout root, the data directory) when
+    inside it, else its file name; never a path of the machine it was shipped on (the checksums name the
+    content)."""
+    try:
+        return Path(path).resolve().relative_to(Path(base).resolve()).as_posix()
+    except ValueError:
+        return Path(path).name
+
+
 def _provenance(domain: str, root: Path, params_path: Path, data_dir: str | None) -> dict[str, Any]:
     """Params of the domain (every per-domain section, resolved with the profile), git revision, data checksums."""
     import importlib
 
     from plad.config import PER_DOMAIN, load_params
+    from plad.data import resolve_data_dir
     from plad.datasets import FILES
     from plad.domains import get_domain
     from plad.layout import Layout
@@ -120,13 +131,15 @@ def _provenance(domain: str, root: Path, params_path: Path, data_dir: str | None
     files: dict[str, str] = {}
     if source in FILES:
         module, attr = FILES[source].split(":")
-        files = getattr(importlib.import_module(module), attr)(data_dir)
+        found = getattr(importlib.import_module(module), attr)(data_dir)
+        base = resolve_data_dir(data_dir)
+        files = {_portable(Path(f), base): digest for f, digest in found.items()}
     prepared = Layout(root).prepared(domain)
     data = {"source": source, "files": files}
     if prepared.is_file():
         data["prepared"] = {str(prepared.relative_to(root)): sha256_file(prepared)}
     status = _git(root, "status", "--porcelain", "--untracked-files=no")
-    return {"params_file": str(params_path), "profile": params.get("profile"), "params": sections,
+    return {"params_file": _portable(params_path, root), "profile": params.get("profile"), "params": sections,
             "git": {"revision": _git(root, "rev-parse", "HEAD"), "dirty": bool(status) if status is not None else None},
             "data": data}
 
@@ -181,9 +194,9 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     info = {
         "format": FORMAT, "domain": domain, "method": method,
         "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(out), "bytes": out.stat().st_size,
-                       "shipped_from": str(checkpoint)},
+                       "shipped_from": _portable(checkpoint, root)},
         "config": model.cfg.to_dict(), "tokens": list(names),
-        "metrics": test, "metrics_file": str(metrics),
+        "metrics": test, "metrics_file": _portable(metrics, root),
         "provenance": provenance,
     }
     atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")

@@ -70,6 +70,19 @@ def test_ship_writes_a_small_checkpoint_and_its_sidecar(trained, shipped):
     assert prov["profile"] == "cpu" and "pretrain" in prov["params"] and "finetune" in prov["params"]
     assert CAD.sha256 in prov["data"]["files"].values()
     assert list(prov["data"]["prepared"]) == ["data/prepared/csg2d.npz"]
+    # no path of the shipping machine: paths relative to the root or the data directory, else file names
+    # (the test ships with absolute paths, the params file outside the root)
+    assert prov["params_file"] == "params.yaml" and info["metrics_file"] == "results/eval/sp/csg2d/metrics.json"
+    assert info["checkpoint"]["shipped_from"] == "runs/pretrain/csg2d/best.pt"
+
+    def strings(v):
+        if isinstance(v, dict):
+            yield from (s for k, x in v.items() for s in (k, *strings(x)))
+        elif isinstance(v, list):
+            yield from (s for x in v for s in strings(x))
+        elif isinstance(v, str):
+            yield v
+    assert not [s for s in strings(info) if s.startswith("/") or str(REPO) in s]
     assert set(prov["git"]) == {"revision", "dirty"}
     # the same weights as the trained checkpoint, without its training state
     shipped_net, _ = load_model(shipped / "csg2d" / "model.pt")
