@@ -6,8 +6,8 @@ sends ``python -m plad.stages.<stage> ...`` here and runs anything else with the
 ``DIR`` first on the ``PATH`` of ``dvc repro`` / ``dvc exp run`` (dvc.yaml's commands stay ``python -m
 ...``, so the stages, their deps and dvc.lock do not change)::
 
-    python -m plad.warm shim /tmp/plad-warm-bin
-    PATH=/tmp/plad-warm-bin:$PATH dvc exp run --temp -S profile=smoke
+    python -m plad.warm shim .warm-bin
+    PATH="$PWD/.warm-bin:$PATH" dvc exp run --temp -S profile=smoke
 
 How it works. The client (``python -m plad.warm -m MODULE ARGS``) connects to a unix socket named by
 a hash of the interpreter, ``sys.path`` and the environment variables read at import time
