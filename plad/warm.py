@@ -251,9 +251,16 @@ def _run_stage(request: dict, fds: list[int]) -> None:
             with contextlib.suppress(Exception):
                 stream.flush()
         if code < 0:                 # die of the signal, as python does on an uncaught KeyboardInterrupt
-            signal.signal(-code, signal.SIG_DFL)
-            os.kill(os.getpid(), -code)
+            _die_of(-code)
         os._exit(code & 0xFF)
+
+
+def _die_of(sig: int) -> None:
+    """End this process by signal ``sig`` with its default action (the forwarded ones reset first)."""
+    for forwarded in FORWARDED:
+        signal.signal(forwarded, signal.SIG_DFL)
+    signal.signal(sig, signal.SIG_DFL)
+    os.kill(os.getpid(), sig)
 
 
 # -- client -----------------------------------------------------------------------------------------
@@ -327,18 +334,14 @@ def run(module: str, args: list[str]) -> int:
 
 def write_shim(folder: Path) -> Path:
     """``folder/python``: ``python -m plad.stages.* ...`` through the warm runner, anything else unchanged."""
-    folder.mkdir(parents=True, exist_ok=True)
-    shim = folder / "python"
+    from plad.fsutil import atomic_write_text
+
     real = sys.executable
     text = ("#!/bin/sh\n"
             "# written by `python -m plad.warm shim`: stage commands through the warm runner (plad/warm.py)\n"
             f'case "$1 $2" in\n  "-m plad.stages."*) exec "{real}" -m plad.warm "$@" ;;\nesac\n'
             f'exec "{real}" "$@"\n')
-    tmp = shim.with_name(".python.tmp")
-    tmp.write_text(text)
-    tmp.chmod(0o755)
-    os.replace(tmp, shim)
-    return shim
+    return atomic_write_text(folder / "python", text, mode=0o755)
 
 
 def main(argv: list[str]) -> int:
@@ -350,10 +353,7 @@ def main(argv: list[str]) -> int:
             print(f"plad.warm: no warm server ({err}); running {module} cold", file=sys.stderr)
             os.execv(sys.executable, [sys.executable, "-m", module, *args])
         if code < 0:
-            for sig in FORWARDED:
-                signal.signal(sig, signal.SIG_DFL)
-            signal.signal(-code, signal.SIG_DFL)
-            os.kill(os.getpid(), -code)
+            _die_of(-code)
         return code
     if len(argv) == 2 and argv[0] == "serve":
         serve(Path(argv[1]), float(os.environ.get("PLAD_WARM_IDLE", "120")))
