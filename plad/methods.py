@@ -63,6 +63,9 @@ class MethodConfig:
     pbest_mode: str = "all-time"
     #: search-seeded and rewritten P_BEST (PLAD methods; null: the paper's P_BEST, from inference only)
     search: PBestSearchConfig | None = None
+    #: this method's own wall-clock budget, minutes, instead of the stage's ``max_minutes`` (null: the
+    #: stage's). For rows beyond the paper only: the paper-comparable methods share one budget
+    max_minutes: float | None = None
 
 
 @dataclass(frozen=True)

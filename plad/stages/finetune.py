@@ -117,8 +117,9 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     domain = get_domain(name)
     train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
+    minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
     job = Job(model, domain, train, val, layout.finetune_dir(cfg.domain, str(cfg.key)), seed=cfg.seed,
-              budget_seconds=budget_seconds(cfg.max_minutes))
+              budget_seconds=budget_seconds(minutes))
     if spec.method == "rl":
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
@@ -127,7 +128,8 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
 
             hooks = replace(hooks, after_infer=PBestSearch(domain, spec.search, job.out_dir, cfg.seed).after_infer)
         summary = run_rounds(job, spec, cfg.plad, hooks)
-    summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode, **summary,
+    summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode,
+               "max_minutes": minutes, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
     if dist.is_main():
         text = json.dumps(summary, indent=2) + "\n"
