@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import abc
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING
@@ -96,6 +96,11 @@ class Domain(abc.ABC):
     @abc.abstractmethod
     def sample(self, n: int, generator: np.random.Generator) -> list[list[int]]:
         """``n`` valid, non-degenerate synthetic programs for supervised pretraining."""
+
+    def samplers(self) -> dict[str, Callable[[int, np.random.Generator], list[list[int]]]]:
+        """The synthetic samplers this domain offers, by name (params ``synthesize.<domain>.sampler``):
+        ``"paper"`` is :meth:`sample` (the paper's), a domain may add its own beyond the paper."""
+        return {"paper": self.sample}
 
     def canonical(self, ids: Sequence[int]) -> list[int]:
         """The canonical form of the valid program ``ids``: a program with exactly the same execution,

@@ -28,6 +28,9 @@ class SynthesizeConfig:
     train_programs: int = 100_000
     val_programs: int = 1_000
     seed: int = 0
+    #: which of the domain's samplers (:meth:`plad.domains.base.Domain.samplers`): "paper", or e.g. 3D CSG's
+    #: "parts" (beyond the paper)
+    sampler: str = "paper"
 
 
 def to_array(programs: list[list[int]], max_len: int) -> np.ndarray:
@@ -42,16 +45,22 @@ def from_array(array: np.ndarray) -> list[list[int]]:
 
 
 def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10_000) -> dict:
+    from plad.config import ConfigError
     from plad.domains import get_domain
 
     domain = get_domain(cfg.domain)
+    samplers = domain.samplers()
+    if cfg.sampler not in samplers:
+        raise ConfigError(f"synthesize.{cfg.domain}.sampler {cfg.sampler!r}: the {cfg.domain} domain offers "
+                          f"{', '.join(map(repr, samplers))}")
+    sample = samplers[cfg.sampler]
     train_rng, val_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(2))
     arrays = {}
     for split, n, rng in (("val", cfg.val_programs, val_rng), ("train", cfg.train_programs, train_rng)):
         parts = []
         for start in tqdm(range(0, n, chunk), desc=f"synthesize {split}", unit="chunk", disable=None):
             # labels in the domain's canonical form: the same shapes, no free choices left to guess
-            programs = [domain.canonical(p) for p in domain.sample(min(chunk, n - start), rng)]
+            programs = [domain.canonical(p) for p in sample(min(chunk, n - start), rng)]
             parts.append(to_array(programs, domain.tokens.max_len))
         arrays[split] = np.concatenate(parts) if parts else np.zeros((0, domain.tokens.max_len), np.int16)
     if domain.complexity_kind is not None:
@@ -59,7 +68,8 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
             arrays[f"{split}_complexity"] = domain.complexity(arrays[split]).astype(np.int16)
     atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)
-    summary = {"domain": cfg.domain, "train": int(len(arrays["train"])), "val": int(len(arrays["val"])),
+    summary = {"domain": cfg.domain, "sampler": cfg.sampler, "train": int(len(arrays["train"])),
+               "val": int(len(arrays["val"])),
                "mean_length": round(float(lengths.mean()), 3) if len(lengths) else 0.0}
     if "train_complexity" in arrays and len(lengths):
         values, counts = np.unique(arrays["train_complexity"], return_counts=True)

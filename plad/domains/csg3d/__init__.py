@@ -72,6 +72,13 @@ class CSG3D(Domain):
 
         return sample_programs(self.executor, n, generator)
 
+    def samplers(self):
+        """The paper's sampler, and ``"parts"`` (beyond the paper): furniture-like unions of plates,
+        sticks and blocks with mirror twins (:func:`.sampler.sample_parts_programs`)."""
+        from plad.domains.csg3d.sampler import sample_parts_programs
+
+        return {**super().samplers(), "parts": lambda n, generator: sample_parts_programs(self.executor, n, generator)}
+
     def canonical(self, ids: Sequence[int]) -> list[int]:
         """Cuboid and ellipsoid parameters snapped to one representative of the ones drawing the same voxels,
         union/inter operands ordered (:mod:`.canonical`)."""

@@ -105,3 +105,53 @@ def test_sampling_is_deterministic_per_seed():
     a = DOMAIN.sample(50, np.random.default_rng(9))
     b = DOMAIN.sample(50, np.random.default_rng(9))
     assert a == b
+
+
+# -- the "parts" sampler (beyond the paper) ----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def parts():
+    return DOMAIN.samplers()["parts"](600, np.random.default_rng(7))
+
+
+def test_parts_programs_are_valid_non_degenerate_and_uniform_over_primitives(parts):
+    assert len(parts) == 600
+    ks = []
+    for ids in parts:
+        DOMAIN.check(ids)
+        ks.append(len(primitives_of(program_tree(ids))))
+    counts = np.bincount(ks, minlength=13)
+    assert counts[:2].sum() == 0 and (counts[2:] > 600 / 11 * 0.6).all()   # every k of 2..12, none missing
+    _, degenerate = DOMAIN.executor.run_packed(pad_programs(parts), check_degenerate=True)
+    assert not degenerate.any()
+
+
+def test_parts_are_unions_of_thin_mostly_mirrored_cuboids(parts):
+    ops = {"union": 0, "diff": 0, "inter": 0}
+    prims = thin = 0
+    for ids in parts:
+        for name in DOMAIN.format(ids).split():
+            if name in ops:
+                ops[name] += 1
+        for _kind, (*_centre, dx, dy, dz) in primitives_of(program_tree(ids)):
+            prims += 1
+            thin += min(dx, dy, dz) <= 3
+    assert ops["inter"] == 0 and ops["union"] > 3 * ops["diff"] > 0
+    assert thin / prims > 0.6       # plates and sticks: 75% of the parts before the degeneracy filter
+    shapes = DOMAIN.execute(__import__("torch").as_tensor(pad_programs(parts[:200])).long()).numpy()
+    mirror = [(s & s[::-1]).sum() / (s | s[::-1]).sum() for s in shapes]
+    assert np.mean(mirror) > 0.55   # the paper's sampler: about 0.3
+
+
+def test_parts_sampler_is_seeded():
+    sample = DOMAIN.samplers()["parts"]
+    rng = np.random.default_rng
+    assert sample(30, rng(1)) == sample(30, rng(1)) != sample(30, rng(2))
+
+
+def test_an_unknown_sampler_is_a_config_error_naming_the_choices(tmp_path):
+    from plad.config import ConfigError
+    from plad.layout import Layout
+    from plad.stages.synthesize import SynthesizeConfig, synthesize
+
+    with pytest.raises(ConfigError, match=r"sampler 'nope'.*'paper', 'parts'"):
+        synthesize(SynthesizeConfig(domain="csg3d", sampler="nope", train_programs=2, val_programs=2), Layout(tmp_path))
