@@ -346,18 +346,25 @@ def amortization_markdown(points: dict[str, dict[str, Timed | None]], method: st
              f"The network is {label(method)}'s model; refinement rewrites its best-of-beam program "
              f"(beam of the evaluation stage); search starts from scratch. Wall-clock seconds per shape on this "
              f"machine (a shared machine's numbers include waiting for a core).", ""]
+    lines += ["\"x search\" is how many times faster than search only a configuration is (search's seconds per "
+              "shape over its own).", ""]
     missing = []
     for d, got in points.items():
         title, k, digits = _column(d)
-        lines += [f"## {_title(d)}", "", f"| configuration | {title} | s per shape | network | refinement |",
-                  "|---|---|---|---|---|"]
+        search = got.get(SEARCH)
+        lines += [f"## {_title(d)}", "",
+                  f"| configuration | {title} | s per shape | x search | network | refinement |",
+                  "|---|---|---|---|---|---|"]
         for key, kind in keys:
             t = got.get(key)
             if t is None:
                 missing.append(f"{d}/{key}")
                 continue
+            faster = (f"{search.seconds_per_shape / t.seconds_per_shape:.1f}"
+                      if search is not None and t.seconds_per_shape > 0 else "—")
             lines.append(f"| {label(key)} ({kind}) | {_fmt(t.test * k, digits)} | {_seconds(t.seconds_per_shape)} | "
-                         f"{_seconds(t.network_seconds_per_shape)} | {_seconds(t.refine_seconds_per_shape)} |")
+                         f"{faster} | {_seconds(t.network_seconds_per_shape)} | "
+                         f"{_seconds(t.refine_seconds_per_shape)} |")
         lines.append("")
     lines += missing_note(missing)
     return "\n".join(lines).rstrip("\n") + "\n"

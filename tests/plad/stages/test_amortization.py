@@ -96,8 +96,9 @@ def test_the_report_builds_with_and_without_the_rows_beyond_the_paper(tmp_path):
     assert "| LEST+ST+WS + search-seeded P_BEST + test-time refinement | 0.900 | 300.0 ms |" in table
     assert "Not computed" not in table
     amort = (layout.results_dir / AMORTIZATION_TABLE).read_text()
-    assert "| LEST+ST+WS + search-seeded P_BEST, beam 1 (network) | 1.400 | 2.0 ms |" in amort
-    assert "| 0.900 | 300.0 ms | 20.0 ms | 280.0 ms |" in amort and "Not computed" not in amort
+    assert "| LEST+ST+WS + search-seeded P_BEST, beam 1 (network) | 1.400 | 2.0 ms | 100.0 |" in amort
+    assert "| 0.900 | 300.0 ms | 0.7 | 20.0 ms | 280.0 ms |" in amort and "Not computed" not in amort
+    assert "| search, no network (search only) | 1.000 | 200.0 ms | 1.0 |" in amort
     assert summary["domains"]["csg2d"]["amortization"]["search"]["test"] == 1.0
 
 
