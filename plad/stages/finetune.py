@@ -11,7 +11,8 @@ wall-clock seconds), ``summary.json`` (also copied to
 ``results/finetune/<domain>/<key>.json``), and the method's resumable state
 (P_BEST, generator, search chunks, ...). A method with a ``search`` block seeds
 and rewrites P_BEST by search (:mod:`plad.pbest_search`).
-A killed run, started again, resumes at its last finished round. The PLAD
+A killed run, started again, resumes at its last finished round; a run folder started from
+another pretrained model, other shapes or another method (``origin.json``) is started over. The PLAD
 rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`. Data-parallel
 on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
 (:mod:`plad.distributed`); rank 0 writes the outputs and the MLflow run.
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -93,6 +95,41 @@ def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np
     return train, val
 
 
+#: what a fine-tuning run started from (beside ``state.json``): a run folder is resumed only if it matches
+ORIGIN = "origin.json"
+
+
+def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> dict:
+    """What a fine-tuning run starts from and would redo differently: the pretrained model's and the real
+    shapes' sha256, the method (without its budget: a longer budget extends a run) and the shape limits.
+
+    The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
+    the pretrained model changes; this is what tells a resumable run from a stale one.
+    """
+    from plad.data import _sha256_file
+
+    method = {k: v for k, v in asdict(spec).items() if k != "max_minutes"}
+    return {"model_sha256": _sha256_file(layout.model(cfg.domain)),
+            "data_sha256": _sha256_file(layout.prepared(cfg.domain)),
+            "method": method, "seed": cfg.seed, "train_limit": cfg.train_limit, "val_limit": cfg.val_limit}
+
+
+def prepare_run_dir(out: Path, origin: dict) -> None:
+    """Keep ``out`` to resume if it was started from ``origin``; else empty it (saying why) and record it."""
+    import shutil
+
+    if out.exists() and any(out.iterdir()):
+        path = out / ORIGIN
+        old = json.loads(path.read_text()) if path.exists() else None
+        if old != origin:
+            what = ("it records no origin (written by an older version)" if old is None else
+                    "its " + ", ".join(k for k in origin if old.get(k) != origin[k]) + " changed")
+            print(f"not resuming {out}: {what}; starting over", file=sys.stderr)
+            shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / ORIGIN, json.dumps(origin, indent=2, sort_keys=True) + "\n")
+
+
 def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: RoundHooks | None = None) -> dict:
     """Fine-tune one method (a pure function of the config and the files it names).
 
@@ -118,7 +155,10 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
     minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
-    job = Job(model, domain, train, val, layout.finetune_dir(cfg.domain, str(cfg.key)), seed=cfg.seed,
+    out = layout.finetune_dir(cfg.domain, str(cfg.key))
+    origin = run_origin(cfg, spec, layout)
+    dist.main_first(lambda: prepare_run_dir(out, origin) if dist.is_main() else None)
+    job = Job(model, domain, train, val, out, seed=cfg.seed,
               budget_seconds=budget_seconds(minutes))
     if spec.method == "rl":
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
@@ -149,6 +189,8 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
     if not dist.is_main():   # one MLflow run per method, rank 0's
         return finetune_stage(cfg, ctx.layout, RoundHooks(infer=infer, step=step))
     out = ctx.layout.finetune_dir(cfg.domain, str(cfg.key))
+    # before the MLflow run: a stale run folder's mlflow_run.json must not be resumed either
+    prepare_run_dir(out, run_origin(cfg, method_of(cfg), ctx.layout))
     params = asdict(cfg)
     params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only
     with StageRun("finetune", cfg.domain, params, out, method=cfg.key, params_path=ctx.params) as run:

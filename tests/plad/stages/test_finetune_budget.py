@@ -38,3 +38,20 @@ def test_the_method_budget_replaces_the_stage_budget(layout):
     long = finetune_stage(config("long", stage_minutes=1e-6, method_minutes=60), layout)
     assert long["max_minutes"] == 60 and long["stopped"] != "budget" and long["units"] == 3
     assert json.loads(layout.finetune_summary("csg2d", "long").read_text())["max_minutes"] == 60
+
+
+def test_a_run_folder_started_from_another_model_is_started_over_not_resumed(layout, capsys):
+    cfg = config("origin", stage_minutes=None, method_minutes=None)
+    cfg.plad.max_rounds = 1
+    first = finetune_stage(cfg, layout)
+    assert first["units"] == 1
+    cfg.plad.max_rounds = 2     # more rounds: the same run continues
+    assert finetune_stage(cfg, layout)["units"] == 2
+    assert "resuming from round 2" in capsys.readouterr().err
+    sp = layout.model("csg2d", "sp")
+    tiny_checkpoint(sp, "csg2d", seed=5)          # another pretrained model: the old rounds are void
+    again = finetune_stage(cfg, layout)
+    err = capsys.readouterr().err
+    assert "not resuming" in err and "model_sha256 changed" in err and "resuming from" not in err
+    assert again["units"] == 2
+    tiny_checkpoint(sp, "csg2d")                  # the module's other tests expect the first model
