@@ -156,8 +156,9 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     torch.manual_seed(cfg.seed)
     minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
     out = layout.finetune_dir(cfg.domain, str(cfg.key))
-    origin = run_origin(cfg, spec, layout)
-    dist.main_first(lambda: prepare_run_dir(out, origin) if dist.is_main() else None)
+    if dist.is_main():   # (again, after tracked_finetune: hashing two small files is cheap)
+        prepare_run_dir(out, run_origin(cfg, spec, layout))
+    dist.barrier()       # no rank reads the run folder before rank 0 has kept or emptied it
     job = Job(model, domain, train, val, out, seed=cfg.seed,
               budget_seconds=budget_seconds(minutes))
     if spec.method == "rl":
