@@ -129,7 +129,9 @@ class CNNEncoder(nn.Module):
         for c in cfg.enc_channels:
             layers += [conv(c_in, c, kernel, padding=pad, bias=not cfg.enc_norm)]
             layers += [norm(c)] if cfg.enc_norm else []
-            layers += [nn.ReLU(), pool(2), drop(cfg.dropout)]
+            # pool before ReLU: the same function (ReLU is monotone, so it commutes with max), on an
+            # eighth of the values
+            layers += [pool(2), nn.ReLU(), drop(cfg.dropout)]
             c_in = c
         self.net = nn.Sequential(*layers)
         if cfg.enc_init == "kaiming":
@@ -143,6 +145,11 @@ class CNNEncoder(nn.Module):
             self.register_buffer("coords", torch.stack(axes)[None], persistent=False)  # (1, dims, *spatial)
         else:
             self.coords = None
+        # 3D: the first block (the full-resolution grid, most of the encoder's time with few channels) runs
+        # channels-last, its convolution weight included: oneDNN's fast path on CPU (bench/encoder.py);
+        # the later blocks, and 2D, stay contiguous, where channels-last was no faster. No value changes.
+        self.memory_format = torch.contiguous_format if dims == 2 else torch.channels_last_3d
+        self.first_block = len(layers) // len(cfg.enc_channels)     # layers of one block
         with torch.no_grad():
             # probe in eval mode: a training-mode probe would move the batch-norm running statistics
             out = self.net.eval()(torch.zeros(1, in_channels, *cfg.input_shape))
@@ -154,6 +161,24 @@ class CNNEncoder(nn.Module):
             nn.Linear(cfg.d_model, cfg.d_model))
 
     def forward(self, shapes: torch.Tensor) -> torch.Tensor:
+        x = shapes.float().unsqueeze(1).contiguous(memory_format=self.memory_format)  # (N, 1, *spatial)
+        first = self.net[0]
+        conv = F.conv2d if x.dim() == 4 else F.conv3d
+        w = first.weight.contiguous(memory_format=self.memory_format)  # (C, 1 [+ dims], *kernel)
+        if self.coords is None:
+            x = conv(x, w, first.bias, padding=first.padding)
+        else:
+            # the first convolution of [shape, coordinates] is a convolution of the shape plus one of the
+            # coordinates, which is the same for every shape: computed once per batch, not per shape
+            x = conv(x, w[:, :1].contiguous(memory_format=self.memory_format), None, padding=first.padding)
+            x = x + conv(self.coords, w[:, 1:], first.bias, padding=first.padding)  # (1, C, *spatial)
+        x = self.net[1:self.first_block](x).contiguous()
+        x = self.net[self.first_block:](x)                          # (N, C, *spatial)
+        x = x.flatten(2).transpose(1, 2)                            # (N, P, C)
+        return self.mlp(x)
+
+    def forward_plain(self, shapes: torch.Tensor) -> torch.Tensor:
+        """The encoder as defined, without :meth:`forward`'s shortcuts (the reference of its test and bench)."""
         x = shapes.float().unsqueeze(1)                             # (N, 1, *spatial)
         if self.coords is not None:
             x = torch.cat([x, self.coords.expand(len(x), -1, *self.coords.shape[2:])], 1)

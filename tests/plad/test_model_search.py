@@ -237,3 +237,30 @@ def test_checkpoint_with_encoder_options_round_trips(tmp_path):
     x = torch.rand(3, 32, 32, 32) > 0.6
     with torch.no_grad():
         assert torch.allclose(loaded.eval().encode(x), model.eval().encode(x))
+
+
+@pytest.mark.parametrize("domain", ["csg2d", "csg3d"])
+@pytest.mark.parametrize("options", [{}, {"coord_channels": True, "enc_kernel": 3},
+                                     {"enc_norm": True, "coord_channels": True}])
+def test_fast_encoder_equals_its_definition(domain, options):
+    """forward's shortcuts (pool before ReLU, the coordinates' convolution once per batch, channels-last
+    first block) give the values and gradients of the plain definition, in training and evaluation."""
+    torch.manual_seed(0)
+    model = PLADNet(tiny_config(domain, **options))
+    enc = model.encoder
+    x = torch.rand(4, *model.cfg.input_shape) > 0.7
+    enc.eval()
+    with torch.no_grad():
+        assert torch.allclose(enc(x), enc.forward_plain(x), atol=1e-5)
+    enc.train()
+    grads = []
+    for forward in (enc.forward, enc.forward_plain):
+        enc.zero_grad()
+        torch.manual_seed(1)            # the same channel-dropout draws
+        out = forward(x)
+        out.square().sum().backward()
+        grads.append((out.detach(), [p.grad.clone() for p in enc.parameters()]))
+    (fast, g_fast), (plain, g_plain) = grads
+    assert torch.allclose(fast, plain, atol=1e-5)
+    for a, b in zip(g_fast, g_plain):   # float sums in another order: equal to 1e-4 of the largest entry
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max() + 1e-6
