@@ -456,6 +456,17 @@ def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarr
     return summary
 
 
+def evenly_spaced(items: np.ndarray, n: int | None) -> np.ndarray:
+    """``n`` items evenly spaced over ``items`` (all of them if ``n`` is None or not smaller).
+
+    Prepared splits are ordered (PartNet: by category, chairs first), so a prefix would be one category.
+    """
+    if n is None or n >= len(items):
+        return items
+    idx = np.unique(np.linspace(0, len(items) - 1, n).round().astype(int))
+    return items[idx]
+
+
 def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
     """Read one split back from a prepared ``.npz`` (:func:`write_prepared`): bool (N, *shape)."""
     with np.load(path) as z:
@@ -466,6 +477,7 @@ def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
 
 __all__ = [
     "DATA_DIR_ENV",
+    "evenly_spaced",
     "SPLITS",
     "DataError",
     "DatasetSpec",

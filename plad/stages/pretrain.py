@@ -93,14 +93,12 @@ def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.
 
 def real_val_shapes(path: Path, n: int) -> torch.Tensor:
     """``n`` real validation shapes, evenly spaced over the prepared split (which is ordered, e.g. by category)."""
-    from plad.data import load_prepared
+    from plad.data import evenly_spaced, load_prepared
 
     if not path.exists():
         raise ConfigError(f"{path}: prepared real shapes not found (real_val_shapes: {n}); run the prepare stage "
                           f"first or set real_val_shapes: 0")
-    val = load_prepared(path, "val")
-    idx = np.unique(np.linspace(0, len(val) - 1, min(n, len(val))).round().astype(int))
-    return torch.from_numpy(np.asarray(val[idx]))
+    return torch.from_numpy(np.asarray(evenly_spaced(load_prepared(path, "val"), n)))
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:

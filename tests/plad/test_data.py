@@ -386,3 +386,15 @@ def test_load_with_download(monkeypatch, tmp_path):
     got = cadset.load_cad(dest, "val", download=True)
     np.testing.assert_array_equal(got, arrays["val_images"])
     assert (dest / "csgnet_cad" / "cad.h5").read_bytes() == content
+
+
+def test_limited_splits_are_evenly_spaced_not_a_prefix():
+    """A split ordered by category (PartNet: chairs, tables, storage) limited to n keeps every category in
+    proportion; a prefix would be all chairs."""
+    from plad.data import evenly_spaced
+
+    labels = np.array([0] * 600 + [1] * 300 + [2] * 100)
+    picked = evenly_spaced(labels, 100)
+    assert len(picked) == 100 and np.bincount(picked).tolist() == [60, 30, 10]
+    assert evenly_spaced(labels, None) is labels and len(evenly_spaced(labels, 5000)) == 1000
+    assert evenly_spaced(labels, 1).tolist() == [0]
