@@ -107,13 +107,13 @@ def flow_task_runs(api_url: str, run_name: str) -> list[tuple[str, str]]:
 def one_process_pbest(root: Path):
     """What round 1 puts in P_BEST, inferred in this process: best-of-beam programs and values."""
     from plad.checkpoint import load_model
-    from plad.data import load_prepared
+    from plad.data import evenly_spaced, load_prepared
     from plad.domains import get_domain
     from plad.search import infer_batched
 
     layout = Layout(root)
     model, _ = load_model(layout.model("csg2d"))
-    train = load_prepared(layout.prepared("csg2d"), "train")[:TRAIN_SHAPES]
+    train = evenly_spaced(load_prepared(layout.prepared("csg2d"), "train"), TRAIN_SHAPES)   # as train_limit picks
     return infer_batched(model, get_domain("csg2d"), train, 3, 10)
 
 

@@ -122,7 +122,7 @@ def finetune_params(path) -> None:
 
 def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path, datasets_dir):
     from plad.checkpoint import load_model
-    from plad.data import load_prepared
+    from plad.data import evenly_spaced, load_prepared
     from plad.domains import get_domain
     from plad.pbest import PBest
     from plad.search import infer_batched
@@ -142,7 +142,7 @@ def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path,
         assert str(layout.finetune_summary("csg2d", key)) in r0["writes"], key
     # the round's beam inference was split across the ranks: P_BEST holds what one process infers
     sp, _ = load_model(layout.model("csg2d"))
-    train = load_prepared(layout.prepared("csg2d"), "train")[:30]
+    train = evenly_spaced(load_prepared(layout.prepared("csg2d"), "train"), 30)   # as train_limit picks
     values, programs, _ = infer_batched(sp, domain, train, 2, 8)
     pbest = PBest.load(layout.finetune_dir("csg2d", "lest_st_ws") / "pbest.npz", domain.metric)
     assert [pbest.program(i) for i in range(30)] == [domain.canonical(p) for p in programs]   # stored canonical
