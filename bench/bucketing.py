@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from plad.batching import bucket_batches, padding_share
-from plad.config import build, load_params, lookup
+from plad.config import load_params, section
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.model import ModelConfig, PLADNet
@@ -42,9 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    section = f"pretrain.{args.domain}"
-    params = load_params(args.params)
-    cfg = build(PretrainConfig, lookup(params, section), section, source=params.source(section))
+    cfg = section(load_params(args.params), f"pretrain.{args.domain}", PretrainConfig)
     domain = get_domain(args.domain)
     bs, n_pool = cfg.train.batch_size, args.pool * cfg.train.batch_size
     rng = np.random.default_rng(args.seed)

@@ -16,10 +16,9 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from plad.config import build, load_params, lookup
+from plad.config import load_params, section
 from plad.domains import get_domain
 from plad.model import ModelConfig, PLADNet
 from plad.stages.pretrain import PretrainConfig
@@ -34,9 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    section = f"pretrain.{args.domain}"
-    params = load_params(args.params)
-    cfg = build(PretrainConfig, lookup(params, section), section, source=params.source(section))
+    cfg = section(load_params(args.params), f"pretrain.{args.domain}", PretrainConfig)
     domain = get_domain(args.domain)
     torch.manual_seed(0)
     enc = PLADNet(ModelConfig.for_domain(cfg.model, domain)).encoder
@@ -80,5 +77,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    np.set_printoptions(precision=3)
     main()

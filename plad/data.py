@@ -463,8 +463,8 @@ def evenly_spaced(items: np.ndarray, n: int | None) -> np.ndarray:
     """
     if n is None or n >= len(items):
         return items
-    idx = np.unique(np.linspace(0, len(items) - 1, n).round().astype(int))
-    return items[idx]
+    # n < len(items): the points are more than 1 apart, so their rounding never repeats an index
+    return items[np.linspace(0, len(items) - 1, n).round().astype(int)]
 
 
 def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
@@ -477,7 +477,6 @@ def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
 
 __all__ = [
     "DATA_DIR_ENV",
-    "evenly_spaced",
     "SPLITS",
     "DataError",
     "DatasetSpec",
@@ -486,6 +485,7 @@ __all__ = [
     "TargetSource",
     "clear_cache",
     "download_dataset",
+    "evenly_spaced",
     "find_dataset_file",
     "load_dataset",
     "load_prepared",

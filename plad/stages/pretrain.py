@@ -98,7 +98,7 @@ def real_val_shapes(path: Path, n: int) -> torch.Tensor:
     if not path.exists():
         raise ConfigError(f"{path}: prepared real shapes not found (real_val_shapes: {n}); run the prepare stage "
                           f"first or set real_val_shapes: 0")
-    return torch.from_numpy(np.asarray(evenly_spaced(load_prepared(path, "val"), n)))
+    return torch.from_numpy(evenly_spaced(load_prepared(path, "val"), n))
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
