@@ -207,19 +207,23 @@ class _Layer(nn.Module):
         return x.view(n, t, self.h, d // self.h).transpose(1, 2)    # (N, H, T, dh)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                cache: tuple[torch.Tensor, torch.Tensor] | None = None
-                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """x (N, T, d). With ``cache`` (keys, values of earlier positions), x holds new positions only."""
+                cache: KVCache | None = None) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | KVCache]:
+        """x (N, T, d) -> (x, (keys, values) (N, H, T, dh) each).
+
+        With ``cache`` (earlier positions), x holds new positions only; their keys and values are appended to
+        the cache in place and the cache is returned.
+        """
         q, k, v = self.qkv(self.ln1(x)).chunk(3, dim=-1)
         q, k, v = self._split(q), self._split(k), self._split(v)
+        kv = (k, v)
         if cache is not None:
-            k = torch.cat([cache[0], k], dim=2)
-            v = torch.cat([cache[1], v], dim=2)
+            kv = cache
+            k, v = cache.append(k, v)
         a = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.p if self.training else 0.0)
         a = a.transpose(1, 2).reshape(x.shape)
         x = x + self.drop(self.out(a))
         x = x + self.drop(self.ff(self.ln2(x)))
-        return x, (k, v)
+        return x, kv
 
 
 class PLADNet(nn.Module):
@@ -304,12 +308,16 @@ class PLADNet(nn.Module):
         mask = self._mask(1, x.device)
         caches = []
         for layer in self.layers:
-            x, kv = layer(x, mask)
-            caches.append(kv)
+            x, (k, v) = layer(x, mask)
+            # room for every position the length cap allows (visual tokens, BOS, max_len program tokens)
+            caches.append(KVCache(k, v, self.pos.shape[0]))
         return self.head(self.ln(x[:, -1])), caches
 
     def step(self, tokens: torch.Tensor, caches: list, position: int) -> tuple[torch.Tensor, list]:
-        """Feed one token per row ((N,) long) at program ``position`` (1-based after BOS) -> (logits, caches)."""
+        """Feed one token per row ((N,) long) at program ``position`` (1-based after BOS) -> (logits, caches).
+
+        The caches of :meth:`start` are extended in place (and returned).
+        """
         x = self.embed(tokens)[:, None, :] + self.pos[self.num_visual + position]
         new = []
         for layer, kv in zip(self.layers, caches):
@@ -318,13 +326,52 @@ class PLADNet(nn.Module):
         return self.head(self.ln(x[:, -1])), new
 
 
-def reorder_caches(caches: list, index: torch.Tensor) -> list:
-    """Select rows of every layer's (keys, values): beam search keeps surviving hypotheses."""
-    return [(k.index_select(0, index), v.index_select(0, index)) for k, v in caches]
+class KVCache:
+    """One layer's keys and values of the positions decoded so far, in preallocated buffers.
+
+    Buffers (N, H, capacity, dh), the first ``n`` positions filled: a decoding step writes one position
+    instead of concatenating the whole past again (torch.cat of the cache was ~10% of a greedy 3D CSG
+    decode on CPU).
+    """
+
+    def __init__(self, k: torch.Tensor, v: torch.Tensor, capacity: int):
+        N, H, T, dh = k.shape
+        self.k = k.new_empty(N, H, capacity, dh)
+        self.v = v.new_empty(N, H, capacity, dh)
+        self.k[:, :, :T] = k
+        self.v[:, :, :T] = v
+        self.n = T
+
+    def append(self, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Add positions (N, H, t, dh) -> keys and values of all positions so far (views)."""
+        t = k.shape[2]
+        if self.n + t > self.k.shape[2]:
+            raise ValueError(f"KV cache full: {self.n} + {t} positions > capacity {self.k.shape[2]}")
+        self.k[:, :, self.n:self.n + t] = k
+        self.v[:, :, self.n:self.n + t] = v
+        self.n += t
+        return self.k[:, :, :self.n], self.v[:, :, :self.n]
+
+    def select(self, index: torch.Tensor) -> KVCache:
+        """The rows ``index`` (M,) long. With as many rows as before (a beam search step) they are gathered
+        into this cache's own buffers, which is returned: its previous rows are gone. Otherwise a new cache.
+        """
+        k, v = self.k[:, :, :self.n].index_select(0, index), self.v[:, :, :self.n].index_select(0, index)
+        if len(index) != len(self.k):
+            return KVCache(k, v, self.k.shape[2])
+        self.k[:, :, :self.n] = k
+        self.v[:, :, :self.n] = v
+        return self
+
+
+def reorder_caches(caches: list[KVCache], index: torch.Tensor) -> list[KVCache]:
+    """Select rows of every layer's cache (:meth:`KVCache.select`, in place when the row count is kept):
+    beam search keeps surviving hypotheses."""
+    return [c.select(index) for c in caches]
 
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-__all__ = ["Architecture", "ModelConfig", "PLADNet", "count_parameters", "reorder_caches"]
+__all__ = ["Architecture", "KVCache", "ModelConfig", "PLADNet", "count_parameters", "reorder_caches"]

@@ -68,9 +68,11 @@ def beam_search(model: PLADNet, table: TokenTable, shapes: torch.Tensor, beam: i
     if k0 < K:
         top = torch.cat([top, torch.full((B, K - k0), NEG, device=dev)], 1)
         tok = torch.cat([tok, tok[:, :1].expand(B, K - k0)], 1)
-    rows = torch.arange(B, device=dev).repeat_interleave(K)                    # (B*K,) parent shape
-    caches = reorder_caches(caches, rows)
-    state = table.advance(state.select(rows), tok.reshape(-1))
+    if K > 1:
+        rows = torch.arange(B, device=dev).repeat_interleave(K)                # (B*K,) parent shape
+        caches = reorder_caches(caches, rows)
+        state = state.select(rows)
+    state = table.advance(state, tok.reshape(-1))
     scores = top.reshape(-1)                                                   # (B*K,)
     seqs = torch.zeros(B * K, L, dtype=torch.long, device=dev)
     seqs[:, 0] = tok.reshape(-1)
@@ -91,13 +93,16 @@ def beam_search(model: PLADNet, table: TokenTable, shapes: torch.Tensor, beam: i
         parent = (flat // V) + torch.arange(B, device=dev)[:, None] * K       # row in (B*K)
         token = flat % V
         parent, token = parent.reshape(-1), token.reshape(-1)
-        parent_done = done[parent]
-        seqs = seqs[parent]
-        lengths = lengths[parent]
-        seqs[:, pos] = torch.where(parent_done, seqs[:, pos], token)
-        lengths = lengths + (~parent_done).long()
-        state = table.advance(state.select(parent), token)
-        caches = reorder_caches(caches, parent)
+        # with one hypothesis per shape (greedy) every row is its own parent: nothing to reorder
+        if K > 1:
+            done = done[parent]
+            seqs = seqs[parent]
+            lengths = lengths[parent]
+            state = state.select(parent)
+            caches = reorder_caches(caches, parent)
+        seqs[:, pos] = torch.where(done, seqs[:, pos], token)
+        lengths = lengths + (~done).long()
+        state = table.advance(state, token)
         scores = best.reshape(-1)
 
     # pad past each program's end with 0 (executors ignore it after the program completes)
