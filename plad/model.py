@@ -55,6 +55,10 @@ class Architecture:
     #: The first program token then sees the shape through its own input as well as through attention,
     #: which early in training collapses onto BOS itself (issue 14)
     prefix_bos: bool = False
+    #: normalize every visual-token feature over the batch (batch norm without scale or shift; running
+    #: statistics at evaluation): the prefix then varies across shapes by construction and cannot grow a
+    #: large shape-independent part, which the ShapeAssembly decoder learned to ignore (docs/pretraining-probes.md)
+    prefix_norm: bool = False
 
     def __post_init__(self) -> None:
         self.enc_channels = tuple(self.enc_channels)
@@ -244,6 +248,9 @@ class PLADNet(nn.Module):
                                   nn.Linear(cfg.d_model, cfg.vocab_size))
         # prefix_bos: mean visual token (N, d) -> an addition to BOS's embedding (N, d)
         self.bos_proj = nn.Linear(cfg.d_model, cfg.d_model) if cfg.prefix_bos else None
+        # prefix_norm: over the batch, per feature of the flattened prefix (N, P * d)
+        self.prefix_norm = (nn.BatchNorm1d(self.num_visual * cfg.d_model, affine=False) if cfg.prefix_norm
+                            else None)
 
     def _bos(self, prefix: torch.Tensor) -> torch.Tensor:
         """The BOS input (N, 1, d) for visual prefix (N, P, d)."""
@@ -255,7 +262,14 @@ class PLADNet(nn.Module):
     # ---- teacher forcing --------------------------------------------------------
     def encode(self, shapes: torch.Tensor) -> torch.Tensor:
         """Shapes (N, *input_shape) -> visual prefix (N, P, d)."""
-        return self.encoder(shapes)
+        prefix = self.encoder(shapes)
+        if self.prefix_norm is None:
+            return prefix
+        flat, bn = prefix.flatten(1), self.prefix_norm
+        if self.training and len(flat) < 2:
+            # no batch statistics of one shape: its running statistics, as at evaluation
+            return F.batch_norm(flat, bn.running_mean, bn.running_var, training=False, eps=bn.eps).view_as(prefix)
+        return bn(flat).view_as(prefix)
 
     def _mask(self, t: int, device: torch.device) -> torch.Tensor:
         """(P+t, P+t) bool, True = may attend: the prefix sees itself, program tokens see the prefix and the past."""

@@ -295,3 +295,21 @@ def test_fast_encoder_equals_its_definition(domain, options):
     assert torch.allclose(fast, plain, atol=1e-5)
     for a, b in zip(g_fast, g_plain):   # float sums in another order: equal to 1e-4 of the largest entry
         assert (a - b).abs().max() <= 1e-4 * b.abs().max() + 1e-6
+
+
+def test_prefix_norm_makes_the_visual_tokens_vary_across_shapes():
+    """prefix_norm: in training, every feature of the visual prefix has mean 0 and variance 1 over the
+    batch, whatever the encoder does; a single shape uses the running statistics, as evaluation does."""
+    torch.manual_seed(0)
+    model = PLADNet(tiny_config(input_shape=(32, 32, 32), prefix_norm=True, dropout=0.0)).train()
+    with torch.no_grad():
+        for p in model.encoder.mlp[-1].parameters():
+            p.add_(100.0)    # a large shape-independent part, as the ShapeAssembly encoder grew
+    x = torch.rand(16, 32, 32, 32) > 0.7
+    prefix = model.encode(x)
+    assert prefix.mean(0).abs().max() < 1e-3
+    assert torch.allclose(prefix.var(0, unbiased=False), torch.ones_like(prefix[0]), atol=1e-3)
+    one = model.encode(x[:1])
+    model.eval()
+    assert torch.allclose(one, model.encode(x[:1]), atol=1e-5)
+    assert not torch.allclose(model.encode(x[:1]), model.encode(x[1:2]))
