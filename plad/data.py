@@ -456,6 +456,14 @@ def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarr
     return summary
 
 
+def evenly_spaced_index(total: int, n: int | None) -> np.ndarray:
+    """Indices (int64) of ``n`` items evenly spaced over ``total`` (all ``total`` if ``n`` is None or not smaller)."""
+    if n is None or n >= total:
+        return np.arange(total)
+    # n < total: the points are more than 1 apart, so their rounding never repeats an index
+    return np.linspace(0, total - 1, n).round().astype(np.int64)
+
+
 def evenly_spaced(items: np.ndarray, n: int | None) -> np.ndarray:
     """``n`` items evenly spaced over ``items`` (all of them if ``n`` is None or not smaller).
 
@@ -463,8 +471,7 @@ def evenly_spaced(items: np.ndarray, n: int | None) -> np.ndarray:
     """
     if n is None or n >= len(items):
         return items
-    # n < len(items): the points are more than 1 apart, so their rounding never repeats an index
-    return items[np.linspace(0, len(items) - 1, n).round().astype(int)]
+    return items[evenly_spaced_index(len(items), n)]
 
 
 def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
@@ -473,6 +480,14 @@ def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
         shape = tuple(int(v) for v in z["shape"])
         packed = z[split]
     return np.unpackbits(packed, axis=1, count=int(np.prod(shape))).astype(bool).reshape(-1, *shape)
+
+
+def load_split(path: str | os.PathLike, split: str, limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(shapes, their indices in the split): a split of a prepared ``.npz``, or ``limit`` of its shapes evenly
+    spaced over it (:func:`evenly_spaced_index`)."""
+    shapes = load_prepared(path, split)
+    index = evenly_spaced_index(len(shapes), limit)
+    return (shapes if limit is None else shapes[index]), index
 
 
 __all__ = [
@@ -486,9 +501,11 @@ __all__ = [
     "clear_cache",
     "download_dataset",
     "evenly_spaced",
+    "evenly_spaced_index",
     "find_dataset_file",
     "load_dataset",
     "load_prepared",
+    "load_split",
     "resolve_data_dir",
     "write_prepared",
 ]

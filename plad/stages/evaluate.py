@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from plad.checkpoint import load_model, read_checkpoint
-from plad.data import load_prepared
+from plad.data import load_split
 from plad.device import resolve_device
 from plad.domains import get_domain
 from plad.floor import evaluate_floor
@@ -54,7 +54,8 @@ class EvaluateConfig:
     splits: list[str] = field(default_factory=lambda: ["test"])
     beam: int = 10
     batch_size: int = 100
-    #: evaluate only the first N shapes of each split (None: all)
+    #: evaluate only N shapes of each split, evenly spaced over it (None: all); PartNet's splits are ordered
+    #: by category, so the first N would be chairs only
     limit: int | None = None
     grid_shapes: int = 16
     device: str = "auto"
@@ -79,11 +80,12 @@ def grid_indices(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, num=min(k, n)).round().astype(int)) if n else np.zeros(0, int)
 
 
-def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]]) -> None:
+def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]], index: np.ndarray) -> None:
+    """One row per shape: its index in the split, metric value, program text."""
     buf = io.StringIO()
     writer = csv.writer(buf)
     writer.writerow(["index", domain.metric.name, "program"])
-    for i, (v, p) in enumerate(zip(values, programs)):
+    for i, v, p in zip(index.tolist(), values, programs):
         writer.writerow([i, f"{v:.6f}", domain.format(p)])
     atomic_write_text(path, buf.getvalue())
 
@@ -95,14 +97,12 @@ def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:
     report: dict = {"domain": cfg.domain, "method": FLOOR, "floor": domain.floor_name or None,
                     "metric": domain.metric.name, "higher_is_better": domain.metric.higher_is_better}
     for split in cfg.splits if domain.floor_name else []:
-        targets = load_prepared(layout.prepared(cfg.domain), split)
-        if cfg.limit is not None:
-            targets = targets[: cfg.limit]
+        targets, index = load_split(layout.prepared(cfg.domain), split, cfg.limit)
         start = time.monotonic()
         values, programs = evaluate_floor(domain, targets)
         report[split] = {"mean": round(float(values.mean()), 6), "n": int(len(values)),
                          "seconds": round(time.monotonic() - start, 1)}
-        _write_programs(out / programs_csv(split), domain, values, programs)
+        _write_programs(out / programs_csv(split), domain, values, programs, index)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     return report
 
@@ -134,9 +134,7 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
                     "higher_is_better": domain.metric.higher_is_better, "beam": beam, "refine": cfg.refine,
                     "checkpoint": str(checkpoint)}
     for split in cfg.splits:
-        targets = load_prepared(layout.prepared(cfg.domain), split)
-        if cfg.limit is not None:
-            targets = targets[: cfg.limit]
+        targets, index = load_split(layout.prepared(cfg.domain), split, cfg.limit)
         start = time.monotonic()
         values, programs, shapes = infer_batched(model, domain, targets, beam, cfg.batch_size,
                                                  desc=f"{cfg.method} {split} beam {beam}")
@@ -153,7 +151,7 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
                    seconds_per_shape=seconds / n, network_seconds_per_shape=network / n,
                    refine_seconds_per_shape=(seconds - network) / n)
         report[split] = row
-        _write_programs(out / programs_csv(split), domain, values, programs)
+        _write_programs(out / programs_csv(split), domain, values, programs, index)
         if split == cfg.splits[-1]:
             idx = grid_indices(len(targets), cfg.grid_shapes)
             save_png(pair_grid(targets[idx], shapes[idx]), out / GRID)

@@ -24,7 +24,7 @@ from plad.stages import StageContext, stage_main
 class SearchOnlyConfig:
     domain: str = field(kw_only=True)
     splits: list[str] = field(default_factory=lambda: ["test"])
-    #: only the first N shapes of each split (None: all)
+    #: only N shapes of each split, evenly spaced over it (None: all), as evaluate's limit
     limit: int | None = None
     #: worker processes (one thread each)
     workers: int = 1
@@ -34,7 +34,7 @@ class SearchOnlyConfig:
 
 def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
     from plad.config import ConfigError
-    from plad.data import load_prepared
+    from plad.data import load_split
     from plad.domains import get_domain
     from plad.fsutil import atomic_write_text
     from plad.rewrite import search_config
@@ -54,7 +54,7 @@ def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
     report: dict = {"domain": cfg.domain, "method": SEARCH, "metric": domain.metric.name,
                     "higher_is_better": domain.metric.higher_is_better, "workers": cfg.workers}
     for split in cfg.splits:
-        targets = load_prepared(layout.prepared(cfg.domain), split)[: cfg.limit]
+        targets, index = load_split(layout.prepared(cfg.domain), split, cfg.limit)
         s = run_baseline(cfg.domain, targets, cfg.workers, cfg.search)
         programs, values = s.pop("programs"), s.pop("values")
         report[split] = {"mean": round(float(s["mean"]), 6), "n": s["n"], "seconds": round(s["seconds"], 1),
@@ -65,7 +65,7 @@ def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
         buf = io.StringIO()
         writer = csv.writer(buf)
         writer.writerow(["index", domain.metric.name, "program"])
-        for i, (v, p) in enumerate(zip(values, programs)):
+        for i, v, p in zip(index.tolist(), values, programs):
             writer.writerow([i, f"{v:.6f}", p])
         atomic_write_text(out / programs_csv(split), buf.getvalue())
         report["config"] = s["config"]

@@ -50,6 +50,34 @@ def test_a_beam_of_the_sweep_has_its_own_result_folder(root):
     assert got["beam"] == saved["beam"] == 1 and saved["test"]["n"] == 4
 
 
+def _indices(path: Path) -> list[int]:
+    with path.open() as fh:
+        return [int(r["index"]) for r in csv.DictReader(fh)]
+
+
+def test_a_limit_takes_shapes_evenly_spaced_over_the_split(root):
+    """PartNet's splits are ordered by category: a limit must not mean the first shapes (chairs only). The
+    programs file names each shape's index in the split, and its value is the one the full split gives."""
+    from plad.data import load_prepared
+    from plad.stages.search_only import SearchOnlyConfig, search_only
+
+    layout = Layout(root)
+    n = len(load_prepared(layout.prepared("csg2d"), "test"))
+    want = np.linspace(0, n - 1, 4).round().astype(int).tolist()
+    assert want[-1] == n - 1 and n > 4
+    evaluate(EvaluateConfig(domain="csg2d", beam=1, limit=4, grid_shapes=2, device="cpu"), layout)
+    csv_path = layout.eval_dir(SP, "csg2d") / programs_csv("test")
+    assert _indices(csv_path) == want
+    limited = _values(csv_path)
+    evaluate(EvaluateConfig(domain="csg2d", beam=1, grid_shapes=2, device="cpu"), layout)
+    assert _indices(csv_path) == list(range(n))
+    assert _values(csv_path)[want] == pytest.approx(limited, abs=1e-6)
+    search_only(SearchOnlyConfig(domain="csg2d", limit=3, search={"insertions": 1, "refine": {"rounds": 0}}),
+                layout)
+    assert _indices(layout.eval_dir(SEARCH, "csg2d") / programs_csv("test")) == \
+        np.linspace(0, n - 1, 3).round().astype(int).tolist()
+
+
 def test_search_only_writes_the_row_with_seconds_per_shape(root):
     from plad.stages.search_only import SearchOnlyConfig, search_only
 
