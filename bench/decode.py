@@ -17,11 +17,11 @@ from __future__ import annotations
 import argparse
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import torch
 
 import plad.model
+from bench import prepared_test_shapes
 from plad.config import load_params, section
 from plad.domains import get_domain
 from plad.model import KVCache, ModelConfig, PLADNet
@@ -84,15 +84,7 @@ def main(argv: list[str] | None = None) -> None:
         model = PLADNet(ModelConfig.for_domain(cfg.model, domain))
         net = "untrained pretraining config"
     model.eval()
-    prepared = Path("data/prepared") / f"{args.domain}.npz"
-    if prepared.exists():
-        from plad.data import load_prepared
-
-        x = torch.from_numpy(load_prepared(prepared, "test")[:args.batch]).bool()
-        source = f"{len(x)} test shapes of {prepared}"
-    else:
-        x = torch.rand(args.batch, *domain.shape) > 0.9
-        source = f"{len(x)} random shapes"
+    x, source = prepared_test_shapes(domain, args.batch)
     beams = [int(b) for b in args.beams.split(",")]
     print(f"{args.domain} decoding, {net}; {source}; {args.threads} thread(s)")
     with torch.no_grad():

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import torch
 
+from bench import prepared_test_shapes
 from plad.config import load_params, section
 from plad.domains import get_domain
 from plad.model import ModelConfig, PLADNet
@@ -37,15 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     domain = get_domain(args.domain)
     torch.manual_seed(0)
     enc = PLADNet(ModelConfig.for_domain(cfg.model, domain)).encoder
-    prepared = Path("data/prepared") / f"{args.domain}.npz"
-    if prepared.exists():
-        from plad.data import load_prepared
-
-        x = torch.from_numpy(load_prepared(prepared, "test")[:args.batch]).bool()
-        source = f"{len(x)} test shapes of {prepared}"
-    else:
-        x = torch.rand(args.batch, *domain.shape) > 0.9
-        source = f"{len(x)} random shapes"
+    x, source = prepared_test_shapes(domain, args.batch)
     print(f"{args.domain} encoder {cfg.model.enc_channels}, kernel {cfg.model.enc_kernel}, "
           f"coordinates {cfg.model.coord_channels}; {source}; {args.threads} thread(s)")
 

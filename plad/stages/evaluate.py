@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from plad.checkpoint import load_model, read_checkpoint
-from plad.data import load_split
+from plad.data import evenly_spaced_index, load_split
 from plad.device import resolve_device
 from plad.domains import get_domain
 from plad.floor import evaluate_floor
@@ -73,11 +73,6 @@ class EvaluateConfig:
 def result_key(cfg: EvaluateConfig) -> str:
     """Where this evaluation's results go (:func:`plad.layout.eval_key`)."""
     return eval_key(cfg.method, cfg.sweep_beam, cfg.refine)
-
-
-def grid_indices(n: int, k: int) -> np.ndarray:
-    """A fixed, evenly spaced set of k of n shapes (the same for every method)."""
-    return np.unique(np.linspace(0, n - 1, num=min(k, n)).round().astype(int)) if n else np.zeros(0, int)
 
 
 def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]], index: np.ndarray) -> None:
@@ -153,7 +148,8 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
         report[split] = row
         _write_programs(out / programs_csv(split), domain, values, programs, index)
         if split == cfg.splits[-1]:
-            idx = grid_indices(len(targets), cfg.grid_shapes)
+            # a fixed, evenly spaced set of the shapes (the same for every method)
+            idx = evenly_spaced_index(len(targets), cfg.grid_shapes)
             save_png(pair_grid(targets[idx], shapes[idx]), out / GRID)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     if cfg.method == SP and not cfg.refine and cfg.sweep_beam is None:  # the floor is evaluate@<d>'s output

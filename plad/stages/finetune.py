@@ -86,11 +86,10 @@ def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np
     """(training shapes, validation shapes) of the real data, limited as configured: evenly spaced over each
     split, not its first shapes (PartNet's splits are ordered by category: the first 1,000 training shapes
     are all chairs, which is what the 3D fine-tuning runs before this rule trained on)."""
-    from plad.data import evenly_spaced, load_prepared
+    from plad.data import load_split
 
     path = layout.prepared(cfg.domain)
-    return (evenly_spaced(load_prepared(path, "train"), cfg.train_limit),
-            evenly_spaced(load_prepared(path, "val"), cfg.val_limit))
+    return load_split(path, "train", cfg.train_limit)[0], load_split(path, "val", cfg.val_limit)[0]
 
 
 #: what a fine-tuning run started from (beside ``state.json``): a run folder is resumed only if it matches
