@@ -134,6 +134,8 @@ class TokenTable:
     tokens: tuple[Token, ...]
     start: tuple[str, ...]
     max_len: int
+    #: most stack tops tabulated by :meth:`_table`; beyond it, rules are compared at every step
+    lookup_limit: int = 1 << 16
     _by_name: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -245,22 +247,65 @@ class TokenTable:
                 ).items()}
         return self._tensors[device]
 
-    def _rule(self, T: dict[str, torch.Tensor], state: GrammarState,
-              tokens: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(applies, rule): whether some rule of a token matches each stack top, and the
-        first matching rule's index. Shapes (B, V) for all tokens, or (B,) for ``tokens`` (B,)."""
+    def _tops(self, T: dict[str, torch.Tensor], state: GrammarState) -> torch.Tensor:
+        """(B, P) the top P symbols of each stack, top first; -2 below the bottom."""
         P = T["pops"].shape[2]
-        # tops[:, j] = symbol j places below the top (j = 0 is the top), -2 below the bottom.
         offs = torch.arange(P, device=state.stack.device)
         pos = state.depth[:, None] - 1 - offs[None, :]                      # (B, P)
         tops = torch.gather(state.stack, 1, pos.clamp(min=0))
-        tops = torch.where(pos >= 0, tops, torch.full_like(tops, -2))
+        return torch.where(pos >= 0, tops, torch.full_like(tops, -2))
+
+    def _match(self, T: dict[str, torch.Tensor], tops: torch.Tensor,
+               tokens: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(applies, rule) by comparing stack tops (B, P) with every rule's pops: shapes (B, V),
+        or (B,) for ``tokens`` (B,)."""
         if tokens is None:
             need, used, tops = T["pops"][None], T["used"][None], tops[:, None, None, :]   # (1, V, R, P)
         else:
             need, used, tops = T["pops"][tokens], T["used"][tokens], tops[:, None, :]     # (B, R, P)
         match = ((tops == need) | (need == -1)).all(dim=-1) & used          # (B, [V,] R)
         return match.any(dim=-1), match.int().argmax(dim=-1)
+
+    def _table(self, T: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
+        """Everything a token does, per possible stack top, or None when there are too many tops.
+
+        A rule depends only on the top P symbols, so with S symbols there are (S + 1)^P tops (one more
+        value for "below the bottom"); for our grammars 9 (2D), a few (3D CSG) and 58 (ShapeAssembly,
+        whose 30 alternative rules per token made comparing every rule at every step the mask's main
+        cost). Per top (K of them) and token: applies, the rule, its depth and cost changes, (K, V) each.
+        """
+        if "key_applies" in T:
+            return T
+        P, base = T["pops"].shape[2], len(self.symbols) + 1
+        if base ** P > self.lookup_limit:
+            return None
+        keys = torch.arange(base ** P, device=T["pops"].device)
+        # key = sum_j (tops[:, j] mapped to 0..S) * base^j, "below the bottom" (-2) mapped to S
+        tops = torch.stack([(keys // base ** j) % base for j in range(P)], 1)
+        tops = torch.where(tops == base - 1, torch.full_like(tops, -2), tops)
+        applies, rule = self._match(T, tops)                                # (K, V)
+        vv = torch.arange(rule.shape[1], device=rule.device)[None, :]
+        T.update(key_applies=applies, key_rule=rule,
+                 key_ddepth=T["n_push"][vv, rule] - T["n_pop"][vv, rule], key_dcost=T["dcost"][vv, rule],
+                 key_weights=base ** torch.arange(P, device=rule.device))
+        return T
+
+    def _key(self, T: dict[str, torch.Tensor], state: GrammarState) -> torch.Tensor:
+        """(B,) each stack top's row of :meth:`_table`."""
+        tops = self._tops(T, state)
+        tops = torch.where(tops < 0, torch.full_like(tops, len(self.symbols)), tops)
+        return (tops * T["key_weights"]).sum(1)
+
+    def _rule(self, T: dict[str, torch.Tensor], state: GrammarState,
+              tokens: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(applies, rule): whether some rule of a token matches each stack top, and the
+        first matching rule's index. Shapes (B, V) for all tokens, or (B,) for ``tokens`` (B,)."""
+        if self._table(T) is None:
+            return self._match(T, self._tops(T, state), tokens)
+        key = self._key(T, state)
+        if tokens is None:
+            return T["key_applies"][key], T["key_rule"][key]
+        return T["key_applies"][key, tokens], T["key_rule"][key, tokens]
 
     def initial_state(self, batch: int, device: torch.device | str = "cpu") -> GrammarState:
         device = torch.device(device)
@@ -281,12 +326,17 @@ class TokenTable:
         A finished row allows nothing. Vectorized over batch and vocabulary.
         """
         T = self._t(state.stack.device)
-        match, rule = self._rule(T, state)                                   # (B, V) each
-        V = rule.shape[1]
-        vv = torch.arange(V, device=rule.device)[None, :]
-        new_depth = state.depth[:, None] - T["n_pop"][vv, rule] + T["n_push"][vv, rule]
         new_len = state.length[:, None] + 1
-        new_cost = state.cost[:, None] + T["dcost"][vv, rule]
+        if self._table(T) is not None:
+            key = self._key(T, state)
+            match = T["key_applies"][key]                                    # (B, V) each
+            new_depth = state.depth[:, None] + T["key_ddepth"][key]
+            new_cost = state.cost[:, None] + T["key_dcost"][key]
+        else:
+            match, rule = self._rule(T, state)
+            vv = torch.arange(rule.shape[1], device=rule.device)[None, :]
+            new_depth = state.depth[:, None] - T["n_pop"][vv, rule] + T["n_push"][vv, rule]
+            new_cost = state.cost[:, None] + T["dcost"][vv, rule]
         ok = match & (new_len + new_cost <= self.max_len) & (new_depth <= self.max_depth)
         ok &= ~T["stop"][None, :] | (new_depth == 0)
         ok &= ~state.done[:, None]

@@ -143,3 +143,28 @@ def test_export_formats_are_declared_and_offered(domain):
 def test_target_data_has_the_domain_shape(domain, datasets_dir):
     shapes = domain.target_data("val", datasets_dir)
     assert shapes.dtype == bool and shapes.shape[1:] == domain.shape and len(shapes) > 0
+
+
+def test_tabulated_stack_tops_give_the_same_masks_and_states_as_comparing_rules(domain):
+    """The mask's lookup table per stack top (TokenTable._table) is only a faster way to compare every
+    rule with the stack: both give the same masks and stacks along random masked rollouts."""
+    import dataclasses
+
+    table = domain.tokens
+    compared = dataclasses.replace(table, lookup_limit=0)
+    assert table._table(table._t(torch.device("cpu"))) is not None
+    assert compared._table(compared._t(torch.device("cpu"))) is None
+    gen = torch.Generator().manual_seed(3)
+    fast, slow = table.initial_state(300), compared.initial_state(300)
+    for _ in range(table.max_len):
+        mask = table.mask(fast)
+        assert torch.equal(mask, compared.mask(slow))
+        if fast.done.all():
+            break
+        tok = torch.multinomial(mask.float() + fast.done.float()[:, None], 1, generator=gen)[:, 0]
+        fast, slow = table.advance(fast, tok), compared.advance(slow, tok)
+        for a, b in ((fast.depth, slow.depth), (fast.length, slow.length), (fast.cost, slow.cost)):
+            assert torch.equal(a, b)
+        rows = torch.arange(fast.stack.shape[1])[None, :] < fast.depth[:, None]
+        assert torch.equal(fast.stack[rows], slow.stack[rows])
+    assert fast.done.all()
