@@ -343,15 +343,21 @@ class PLADNet(nn.Module):
 class KVCache:
     """One layer's keys and values of the positions decoded so far, in preallocated buffers.
 
-    Buffers (N, H, capacity, dh), the first ``n`` positions filled: a decoding step writes one position
+    Buffers (N, H, room, dh), the first ``n`` positions filled: a decoding step writes one position
     instead of concatenating the whole past again (torch.cat of the cache was ~10% of a greedy 3D CSG
-    decode on CPU).
+    decode on CPU). The room grows by doubling up to ``capacity`` (the model's positions), so that short
+    programs do not pay for buffers sized for the longest.
     """
+
+    #: positions of room beyond those given, at first
+    initial_room = 32
 
     def __init__(self, k: torch.Tensor, v: torch.Tensor, capacity: int):
         N, H, T, dh = k.shape
-        self.k = k.new_empty(N, H, capacity, dh)
-        self.v = v.new_empty(N, H, capacity, dh)
+        self.capacity = capacity
+        room = min(capacity, T + self.initial_room)
+        self.k = k.new_empty(N, H, room, dh)
+        self.v = v.new_empty(N, H, room, dh)
         self.k[:, :, :T] = k
         self.v[:, :, :T] = v
         self.n = T
@@ -359,8 +365,15 @@ class KVCache:
     def append(self, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Add positions (N, H, t, dh) -> keys and values of all positions so far (views)."""
         t = k.shape[2]
+        if self.n + t > self.capacity:
+            raise ValueError(f"KV cache full: {self.n} + {t} positions > capacity {self.capacity}")
         if self.n + t > self.k.shape[2]:
-            raise ValueError(f"KV cache full: {self.n} + {t} positions > capacity {self.k.shape[2]}")
+            room = min(self.capacity, max(2 * self.k.shape[2], self.n + t))
+            for name in ("k", "v"):
+                old = getattr(self, name)
+                grown = old.new_empty(*old.shape[:2], room, old.shape[3])
+                grown[:, :, :self.n] = old[:, :, :self.n]
+                setattr(self, name, grown)
         self.k[:, :, self.n:self.n + t] = k
         self.v[:, :, self.n:self.n + t] = v
         self.n += t
@@ -370,11 +383,19 @@ class KVCache:
         """The rows ``index`` (M,) long. With as many rows as before (a beam search step) they are gathered
         into this cache's own buffers, which is returned: its previous rows are gone. Otherwise a new cache.
         """
-        k, v = self.k[:, :, :self.n].index_select(0, index), self.v[:, :, :self.n].index_select(0, index)
         if len(index) != len(self.k):
-            return KVCache(k, v, self.k.shape[2])
-        self.k[:, :, :self.n] = k
-        self.v[:, :, :self.n] = v
+            k, v = self.k[:, :, :self.n].index_select(0, index), self.v[:, :, :self.n].index_select(0, index)
+            return KVCache(k, v, self.capacity)
+        # Only the rows whose source is another row are written: in a beam search most hypotheses extend
+        # themselves, and copying every row twice (gather, then write back) made beam 5 slower than
+        # concatenating. The sources are gathered before any row is overwritten.
+        moved = torch.nonzero(index != torch.arange(len(index), device=index.device)).flatten()
+        if len(moved):
+            src = index[moved]
+            k = self.k[:, :, :self.n].index_select(0, src)
+            v = self.v[:, :, :self.n].index_select(0, src)
+            self.k[:, :, :self.n].index_copy_(0, moved, k)
+            self.v[:, :, :self.n].index_copy_(0, moved, v)
         return self
 
 

@@ -96,7 +96,8 @@ def test_reordered_caches_decode_as_the_selected_rows_alone():
                 logits, caches = model.step(toks[:, i], caches, i + 1)
             return logits
 
-        for rows in (torch.tensor([2, 0, 0]), torch.tensor([1, 1, 2, 0, 2])):
+        # [0, 0, 2]: rows that keep their own hypothesis are not copied (only row 1 is written)
+        for rows in (torch.tensor([2, 0, 0]), torch.tensor([0, 0, 2]), torch.tensor([1, 1, 2, 0, 2])):
             for reorder_at in (0, 2):
                 alone = decode(torch.arange(3), None)[rows]
                 # tokens before the reordering come from the original rows; after it, the selected rows'
