@@ -276,14 +276,23 @@ def test_checkpoint_with_encoder_options_round_trips(tmp_path):
                                      {"enc_norm": True, "coord_channels": True}])
 def test_fast_encoder_equals_its_definition(domain, options):
     """forward's shortcuts (pool before ReLU, the coordinates' convolution once per batch, channels-last
-    first block) give the values and gradients of the plain definition, in training and evaluation."""
+    first block, batch norm folded into the convolution in evaluation) give the values and gradients of the
+    plain definition, in training and evaluation."""
     torch.manual_seed(0)
     model = PLADNet(tiny_config(domain, **options))
     enc = model.encoder
     x = torch.rand(4, *model.cfg.input_shape) > 0.7
+    with torch.no_grad():   # batch-norm statistics and affine parameters far from their initial identity
+        for m in enc.modules():
+            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                m.running_mean.uniform_(-1, 1), m.running_var.uniform_(0.5, 2)
+                m.weight.uniform_(0.5, 2), m.bias.uniform_(-1, 1)
     enc.eval()
     with torch.no_grad():
         assert torch.allclose(enc(x), enc.forward_plain(x), atol=1e-5)
+    for m in enc.modules():   # training uses batch statistics: back to the initial parameters
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.reset_parameters()
     enc.train()
     grads = []
     for forward in (enc.forward, enc.forward_plain):
