@@ -35,6 +35,7 @@ import tempfile
 import threading
 import urllib.error
 import urllib.request
+import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -475,11 +476,21 @@ def evenly_spaced(items: np.ndarray, n: int | None) -> np.ndarray:
 
 
 def load_prepared(path: str | os.PathLike, split: str) -> np.ndarray:
-    """Read one split back from a prepared ``.npz`` (:func:`write_prepared`): bool (N, *shape)."""
-    with np.load(path) as z:
-        shape = tuple(int(v) for v in z["shape"])
-        packed = z[split]
-    return np.unpackbits(packed, axis=1, count=int(np.prod(shape))).astype(bool).reshape(-1, *shape)
+    """Read one split back from a prepared ``.npz`` (:func:`write_prepared`): bool (N, *shape).
+
+    A missing, unreadable or incomplete file is a :class:`DataError` naming it (the prepare stage makes it).
+    """
+    if not Path(path).is_file():
+        raise DataError(path, "no such prepared file; run the prepare stage (dvc repro prepare)")
+    try:
+        with np.load(path) as z:
+            shape = tuple(int(v) for v in z["shape"])
+            packed = z[split]
+        return np.unpackbits(packed, axis=1, count=int(np.prod(shape))).astype(bool).reshape(-1, *shape)
+    except KeyError as err:
+        raise DataError(path, f"not a prepared file with split {split!r} (missing {err})") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise DataError(path, f"not a readable prepared .npz ({type(err).__name__}: {err})") from None
 
 
 def load_split(path: str | os.PathLike, split: str, limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -398,3 +398,20 @@ def test_limited_splits_are_evenly_spaced_not_a_prefix():
     assert len(picked) == 100 and np.bincount(picked).tolist() == [60, 30, 10]
     assert evenly_spaced(labels, None) is labels and len(evenly_spaced(labels, 5000)) == 1000
     assert evenly_spaced(labels, 1).tolist() == [0]
+
+
+def test_a_missing_or_corrupt_prepared_file_is_a_one_line_data_error(tmp_path):
+    """load_prepared, which every stage reads its shapes with, names the file and the problem."""
+    from plad.data import DataError, load_prepared
+
+    missing = tmp_path / "csg2d.npz"
+    with pytest.raises(DataError, match="no such prepared file") as err:
+        load_prepared(missing, "test")
+    assert str(missing) in str(err.value) and "\n" not in str(err.value)
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(DataError, match="not a readable prepared .npz"):
+        load_prepared(corrupt, "test")
+    np.savez(tmp_path / "other.npz", shape=np.array([2, 2]))
+    with pytest.raises(DataError, match="split 'test'"):
+        load_prepared(tmp_path / "other.npz", "test")
