@@ -117,6 +117,15 @@ class ShapeAssembly(Domain):
 
         return sample_programs(self, n, generator)
 
+    def samplers(self):
+        """The paper's sampler, and ``"inside"`` (beyond the paper): every part kept inside the bbox, as
+        PartNet's are, and most bboxes full height, as most voxelized PartNet shapes are
+        (:func:`.sampler.sample_programs`)."""
+        from plad.domains.shapeassembly.sampler import sample_programs
+
+        return {**super().samplers(),
+                "inside": lambda n, generator: sample_programs(self, n, generator, inside=True)}
+
     # canonical(): the default, the program itself. No choice of this language is free: the two Attaches of a
     # part run in order (the first translates, the second scales and turns), Squeeze's two targets play
     # different roles (the named face against the first), a Reflect or Translate copy re-solves the moves in

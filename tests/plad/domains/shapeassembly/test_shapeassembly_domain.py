@@ -108,6 +108,41 @@ def test_10000_sampled_programs_satisfy_the_8_voxel_rule():
     print(f"sampled 10000 programs in {elapsed:.1f} s")
 
 
+def test_inside_sampler_keeps_every_part_in_the_bbox():
+    sample = DOMAIN.samplers()["inside"]
+    programs = sample(300, np.random.default_rng(3))
+    assert len(programs) == 300 and max(len(p) for p in programs) <= 100
+    heights = []
+    for ids in programs:
+        cubs = token_cuboids(ids)
+        h = int(TABLE.tokens[ids[1]].name)
+        heights.append(h)
+        # independent of the sampler's check: the 8 corners of every cuboid, copies included
+        centre, axes, dims = cubs[:, 0:3], cubs[:, 3:12].reshape(-1, 3, 3), cubs[:, 12:15]
+        axes = axes / np.linalg.norm(axes, axis=2, keepdims=True)
+        signs = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+        corners = centre[:, None, :] + np.einsum("ka,na,nab->nkb", signs, dims, axes)
+        limit = np.array([0.5, h / 64, 0.5]) + 0.5 / 32 + 1e-5
+        assert (np.abs(corners) <= limit).all(), DOMAIN.format(ids)
+        # and the voxels: no occupied row above or below the bbox's
+        grid = DOMAIN.execute(torch.tensor([ids]))[0].numpy()
+        rows = np.nonzero(grid.any(axis=(0, 2)))[0]
+        assert rows.max() - rows.min() + 1 <= h + 1
+    cubs = [token_cuboids(p) for p in programs]
+    owner = torch.cat([torch.full((len(c),), i, dtype=torch.long) for i, c in enumerate(cubs)])
+    _, unique = voxelize_batch(torch.from_numpy(np.concatenate(cubs)), owner, len(programs))
+    assert all(int(unique[owner == i].min()) >= 8 for i in range(len(programs)))
+    # most bboxes full height, as most voxelized PartNet shapes are
+    assert 0.55 < np.mean(np.array(heights) == 31) < 0.9
+    # the paper's sampler leaves the bbox in almost every program
+    outside = 0
+    for ids in DOMAIN.sample(100, np.random.default_rng(3)):
+        grid = DOMAIN.execute(torch.tensor([ids]))[0].numpy()
+        rows = np.nonzero(grid.any(axis=(0, 2)))[0]
+        outside += rows.max() - rows.min() + 1 > int(TABLE.tokens[ids[1]].name) + 1
+    assert outside > 50
+
+
 def test_dataset_build_end_to_end(tmp_path, fixtures_dir):
     from plad.datasets.partnet.dataset import build_partnet_dataset, load_split, unpack
 
