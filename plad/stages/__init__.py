@@ -9,15 +9,29 @@ a params, data or checkpoint problem).
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from plad.fsutil import atomic_write_text
 from plad.layout import Layout
 
 T = TypeVar("T")
+
+
+def write_programs_csv(path: str | Path, metric_name: str, index, values, texts) -> None:
+    """``<split>_programs.csv`` of the evaluate and search_only stages, atomically: one row per shape with
+    its index in the split, its metric value and its program text."""
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["index", metric_name, "program"])
+    for i, v, text in zip(list(index), values, texts):
+        writer.writerow([int(i), f"{float(v):.6f}", text])
+    atomic_write_text(path, buf.getvalue())
 
 
 @dataclass(frozen=True)

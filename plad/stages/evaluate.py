@@ -23,8 +23,6 @@ refinement.
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import sys
 import time
@@ -42,7 +40,7 @@ from plad.fsutil import atomic_write_text
 from plad.layout import FLOOR, GRID, METRICS, SP, Layout, eval_key, programs_csv
 from plad.pictures import pair_grid, save_png
 from plad.search import infer_batched
-from plad.stages import StageContext, stage_main
+from plad.stages import StageContext, stage_main, write_programs_csv
 from plad.tracking import StageRun
 
 
@@ -76,13 +74,7 @@ def result_key(cfg: EvaluateConfig) -> str:
 
 
 def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]], index: np.ndarray) -> None:
-    """One row per shape: its index in the split, metric value, program text."""
-    buf = io.StringIO()
-    writer = csv.writer(buf)
-    writer.writerow(["index", domain.metric.name, "program"])
-    for i, v, p in zip(index.tolist(), values, programs):
-        writer.writerow([i, f"{v:.6f}", domain.format(p)])
-    atomic_write_text(path, buf.getvalue())
+    write_programs_csv(path, domain.metric.name, index, values, [domain.format(p) for p in programs])
 
 
 def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:

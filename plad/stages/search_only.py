@@ -10,14 +10,12 @@ same files as an evaluation of a network.
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import sys
 from dataclasses import asdict, dataclass, field
 
 from plad.layout import METRICS, SEARCH, Layout, programs_csv
-from plad.stages import StageContext, stage_main
+from plad.stages import StageContext, stage_main, write_programs_csv
 
 
 @dataclass
@@ -62,12 +60,7 @@ def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
                          "process_seconds_per_shape": s["process_seconds_per_shape"],
                          "cpu_seconds_per_shape": s["cpu_seconds_per_shape"], "mean_tokens": s["mean_tokens"],
                          "empty_programs": s["empty_programs"], "stats": s["stats"]}
-        buf = io.StringIO()
-        writer = csv.writer(buf)
-        writer.writerow(["index", domain.metric.name, "program"])
-        for i, v, p in zip(index.tolist(), values, programs):
-            writer.writerow([i, f"{v:.6f}", p])
-        atomic_write_text(out / programs_csv(split), buf.getvalue())
+        write_programs_csv(out / programs_csv(split), domain.metric.name, index, values, programs)
         report["config"] = s["config"]
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     return report
