@@ -93,12 +93,12 @@ def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.
 
 def real_val_shapes(path: Path, n: int) -> torch.Tensor:
     """``n`` real validation shapes, evenly spaced over the prepared split (which is ordered, e.g. by category)."""
-    from plad.data import evenly_spaced, load_prepared
+    from plad.data import load_split
 
     if not path.exists():
         raise ConfigError(f"{path}: prepared real shapes not found (real_val_shapes: {n}); run the prepare stage "
                           f"first or set real_val_shapes: 0")
-    return torch.from_numpy(evenly_spaced(load_prepared(path, "val"), n))
+    return torch.from_numpy(load_split(path, "val", n)[0])
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
