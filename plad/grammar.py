@@ -284,11 +284,16 @@ class TokenTable:
         tops = torch.stack([(keys // base ** j) % base for j in range(P)], 1)
         tops = torch.where(tops == base - 1, torch.full_like(tops, -2), tops)
         applies, rule = self._match(T, tops)                                # (K, V)
-        vv = torch.arange(rule.shape[1], device=rule.device)[None, :]
-        T.update(key_applies=applies, key_rule=rule,
-                 key_ddepth=T["n_push"][vv, rule] - T["n_pop"][vv, rule], key_dcost=T["dcost"][vv, rule],
+        ddepth, dcost = self._changes(T, rule)
+        T.update(key_applies=applies, key_rule=rule, key_ddepth=ddepth, key_dcost=dcost,
                  key_weights=base ** torch.arange(P, device=rule.device))
         return T
+
+    @staticmethod
+    def _changes(T: dict[str, torch.Tensor], rule: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(depth change, cost change) of every token under its rule ``rule`` (B, V): (B, V) each."""
+        vv = torch.arange(rule.shape[1], device=rule.device)[None, :]
+        return T["n_push"][vv, rule] - T["n_pop"][vv, rule], T["dcost"][vv, rule]
 
     def _key(self, T: dict[str, torch.Tensor], state: GrammarState) -> torch.Tensor:
         """(B,) each stack top's row of :meth:`_table`."""
@@ -329,14 +334,12 @@ class TokenTable:
         new_len = state.length[:, None] + 1
         if self._table(T) is not None:
             key = self._key(T, state)
-            match = T["key_applies"][key]                                    # (B, V) each
-            new_depth = state.depth[:, None] + T["key_ddepth"][key]
-            new_cost = state.cost[:, None] + T["key_dcost"][key]
+            match, ddepth, dcost = T["key_applies"][key], T["key_ddepth"][key], T["key_dcost"][key]   # (B, V)
         else:
             match, rule = self._rule(T, state)
-            vv = torch.arange(rule.shape[1], device=rule.device)[None, :]
-            new_depth = state.depth[:, None] - T["n_pop"][vv, rule] + T["n_push"][vv, rule]
-            new_cost = state.cost[:, None] + T["dcost"][vv, rule]
+            ddepth, dcost = self._changes(T, rule)
+        new_depth = state.depth[:, None] + ddepth
+        new_cost = state.cost[:, None] + dcost
         ok = match & (new_len + new_cost <= self.max_len) & (new_depth <= self.max_depth)
         ok &= ~T["stop"][None, :] | (new_depth == 0)
         ok &= ~state.done[:, None]
