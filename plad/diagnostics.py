@@ -9,10 +9,19 @@ row i is row i+1 (cyclically), so the value is deterministic for a fixed
 batch. Reported per pretraining epoch next to the greedy metric on real
 validation shapes (issue 14: a 3D model with validation loss going down and
 a gap of 0.009 had learnt the programs' statistics, not the shapes).
+
+:func:`kind_gaps` splits the loss and the gap by the kind of the target token (which parts of a program
+the network reads from the shape); ``python -m plad.diagnostics CHECKPOINT`` prints it for the synthetic
+validation programs of the checkpoint's domain (docs/pretraining-probes.md, section 4).
 """
 from __future__ import annotations
 
+import argparse
+import sys
+from collections.abc import Sequence
+
 import torch
+import torch.nn.functional as F
 
 from plad.model import PLADNet
 
@@ -36,4 +45,92 @@ def prefix_gap(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, len
     return float(other - own)
 
 
-__all__ = ["prefix_gap"]
+def _token_nll(model: PLADNet, prefix: torch.Tensor, programs: torch.Tensor,
+               lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Teacher-forced (nll, correct, valid), (N, L) each, as :meth:`PLADNet.loss` computes them."""
+    N, L = programs.shape
+    valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
+    target = torch.where(valid, programs, torch.zeros_like(programs))
+    bos = torch.full((N, 1), model.cfg.bos, device=programs.device, dtype=torch.long)
+    tokens_in = torch.cat([bos, torch.where(valid, programs, torch.full_like(programs, model.cfg.pad))[:, :-1]], 1)
+    logits = model.forward_prefix(prefix, tokens_in)                   # (N, L, V)
+    nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
+    return nll, logits.argmax(-1) == target, valid
+
+
+@torch.no_grad()
+def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
+              kinds: Sequence[str]) -> dict[str, dict[str, float]]:
+    """Per kind of target token (``kinds[token id]``): its share of the tokens, mean nll, accuracy and
+    prefix-swap gap (as :func:`prefix_gap`, the next row's prefix), eval mode (restored after).
+
+    The share-weighted nll is the loss of :meth:`PLADNet.loss`; a kind whose gap is ~0 is predicted from
+    the program so far alone, whatever the shape.
+    """
+    if len(shapes) < 2:
+        raise ValueError("kind_gaps needs at least two shapes")
+    was_training = model.training
+    model.eval()
+    try:
+        prefix = model.encode(shapes)
+        nll, correct, valid = _token_nll(model, prefix, programs, lengths)
+        other, _, _ = _token_nll(model, prefix.roll(1, dims=0), programs, lengths)
+    finally:
+        model.train(was_training)
+    names = sorted(set(kinds))
+    kind_of = torch.tensor([names.index(k) for k in kinds], device=programs.device)
+    group = kind_of[torch.where(valid, programs, torch.zeros_like(programs))][valid]     # (T,) kind per token
+    total = int(valid.sum())
+    out = {}
+    for i, name in enumerate(names):
+        sel = group == i
+        n = int(sel.sum())
+        if n == 0:
+            continue
+        out[name] = {"share": n / total, "nll": float(nll[valid][sel].mean()),
+                     "accuracy": float(correct[valid][sel].float().mean()),
+                     "gap": float((other[valid][sel] - nll[valid][sel]).mean())}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print :func:`kind_gaps` of a checkpoint on its domain's synthetic programs."""
+    import numpy as np
+
+    from plad.checkpoint import load_model
+    from plad.data import DataError
+    from plad.domains import get_domain
+    from plad.errors import run_guarded
+    from plad.layout import Layout
+    from plad.stages.pretrain import make_batch
+
+    ap = argparse.ArgumentParser(prog="python -m plad.diagnostics", description=main.__doc__)
+    ap.add_argument("checkpoint")
+    ap.add_argument("--split", default="val", choices=("train", "val"))
+    ap.add_argument("--programs", type=int, default=256, help="the first N programs of the split")
+    ap.add_argument("--root", default=".", help="project root holding data/synthetic (default: .)")
+    args = ap.parse_args(argv)
+
+    def run() -> None:
+        model, name = load_model(args.checkpoint)
+        domain = get_domain(name)
+        path = Layout(args.root).synthetic(name)
+        try:
+            with np.load(path) as z:
+                rows = torch.from_numpy(z[args.split][: args.programs].astype(np.int64))
+        except (OSError, KeyError, ValueError) as e:
+            raise DataError(path, f"cannot read the {args.split} programs ({e}); run the synthesize stage") from None
+        shapes, programs, lengths = make_batch(domain, rows, torch.device("cpu"))
+        table = kind_gaps(model, shapes.float(), programs, lengths, [t.kind for t in domain.tokens.tokens])
+        print(f"{'kind':12s} {'share':>6s} {'nll':>6s} {'acc':>6s} {'gap':>6s}")
+        for kind, r in sorted(table.items(), key=lambda kv: -kv[1]["share"] * kv[1]["nll"]):
+            print(f"{kind:12s} {r['share']:6.3f} {r['nll']:6.3f} {r['accuracy']:6.3f} {r['gap']:6.3f}")
+
+    return run_guarded("python -m plad.diagnostics", run)
+
+
+__all__ = ["kind_gaps", "prefix_gap"]
+
+
+if __name__ == "__main__":
+    sys.exit(main())
