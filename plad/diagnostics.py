@@ -21,7 +21,6 @@ import sys
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 
 from plad.model import PLADNet
 
@@ -45,19 +44,6 @@ def prefix_gap(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, len
     return float(other - own)
 
 
-def _token_nll(model: PLADNet, prefix: torch.Tensor, programs: torch.Tensor,
-               lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Teacher-forced (nll, correct, valid), (N, L) each, as :meth:`PLADNet.loss` computes them."""
-    N, L = programs.shape
-    valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
-    target = torch.where(valid, programs, torch.zeros_like(programs))
-    bos = torch.full((N, 1), model.cfg.bos, device=programs.device, dtype=torch.long)
-    tokens_in = torch.cat([bos, torch.where(valid, programs, torch.full_like(programs, model.cfg.pad))[:, :-1]], 1)
-    logits = model.forward_prefix(prefix, tokens_in)                   # (N, L, V)
-    nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
-    return nll, logits.argmax(-1) == target, valid
-
-
 @torch.no_grad()
 def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
               kinds: Sequence[str]) -> dict[str, dict[str, float]]:
@@ -73,23 +59,20 @@ def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, leng
     model.eval()
     try:
         prefix = model.encode(shapes)
-        nll, correct, valid = _token_nll(model, prefix, programs, lengths)
-        other, _, _ = _token_nll(model, prefix.roll(1, dims=0), programs, lengths)
+        nll, correct, valid = model.token_nll(prefix, programs, lengths)
+        other, _, _ = model.token_nll(prefix.roll(1, dims=0), programs, lengths)
     finally:
         model.train(was_training)
+    # the valid tokens only, flattened: (T,) each
+    nll, correct, gap, tokens = nll[valid], correct[valid].float(), other[valid] - nll[valid], programs[valid]
     names = sorted(set(kinds))
-    kind_of = torch.tensor([names.index(k) for k in kinds], device=programs.device)
-    group = kind_of[torch.where(valid, programs, torch.zeros_like(programs))][valid]     # (T,) kind per token
-    total = int(valid.sum())
+    group = torch.tensor([names.index(k) for k in kinds], device=programs.device)[tokens]   # (T,) kind index
     out = {}
     for i, name in enumerate(names):
         sel = group == i
-        n = int(sel.sum())
-        if n == 0:
-            continue
-        out[name] = {"share": n / total, "nll": float(nll[valid][sel].mean()),
-                     "accuracy": float(correct[valid][sel].float().mean()),
-                     "gap": float((other[valid][sel] - nll[valid][sel]).mean())}
+        if sel.any():
+            out[name] = {"share": float(sel.float().mean()), "nll": float(nll[sel].mean()),
+                         "accuracy": float(correct[sel].mean()), "gap": float(gap[sel].mean())}
     return out
 
 

@@ -318,23 +318,30 @@ class PLADNet(nn.Module):
     def forward(self, shapes: torch.Tensor, tokens_in: torch.Tensor) -> torch.Tensor:
         return self.forward_prefix(self.encode(shapes), tokens_in)
 
+    def token_nll(self, prefix: torch.Tensor, programs: torch.Tensor,
+                  lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Teacher-forced (nll, correct, valid), (N, L) each, of programs (N, L) right-padded (any value past
+        ``lengths`` (N,)) after the visual prefix (N, P, d)."""
+        N, L = programs.shape
+        valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
+        target = torch.where(valid, programs, torch.zeros_like(programs))
+        tokens_in = torch.cat([torch.full((N, 1), self.cfg.bos, device=programs.device, dtype=torch.long),
+                               torch.where(valid, programs, torch.full_like(programs, self.cfg.pad))[:, :-1]], 1)
+        logits = self.forward_prefix(prefix, tokens_in)
+        nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
+        return nll, logits.argmax(-1) == target, valid
+
     def loss(self, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
              prefix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean token cross-entropy and token accuracy of (shape, program) pairs.
 
         programs (N, L) long right-padded (any value past ``lengths``); lengths (N,).
         """
-        N, L = programs.shape
-        valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
-        target = torch.where(valid, programs, torch.zeros_like(programs))
-        tokens_in = torch.cat([torch.full((N, 1), self.cfg.bos, device=programs.device, dtype=torch.long),
-                               torch.where(valid, programs, torch.full_like(programs, self.cfg.pad))[:, :-1]], 1)
         if prefix is None:
             prefix = self.encode(shapes)
-        logits = self.forward_prefix(prefix, tokens_in)
-        nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
+        nll, correct, valid = self.token_nll(prefix, programs, lengths)
         loss = (nll * valid).sum() / valid.sum()
-        acc = ((logits.argmax(-1) == target) & valid).sum().float() / valid.sum()
+        acc = (correct & valid).sum().float() / valid.sum()
         return loss, acc
 
     # ---- incremental decoding -------------------------------------------------------
