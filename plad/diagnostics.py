@@ -78,14 +78,11 @@ def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, leng
 
 def main(argv: list[str] | None = None) -> int:
     """Print :func:`kind_gaps` of a checkpoint on its domain's synthetic programs."""
-    import numpy as np
-
     from plad.checkpoint import load_model
-    from plad.data import DataError
     from plad.domains import get_domain
     from plad.errors import run_guarded
     from plad.layout import Layout
-    from plad.stages.pretrain import make_batch
+    from plad.stages.pretrain import load_programs, make_batch
 
     ap = argparse.ArgumentParser(prog="python -m plad.diagnostics", description=main.__doc__)
     ap.add_argument("checkpoint")
@@ -97,12 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> None:
         model, name = load_model(args.checkpoint)
         domain = get_domain(name)
-        path = Layout(args.root).synthetic(name)
-        try:
-            with np.load(path) as z:
-                rows = torch.from_numpy(z[args.split][: args.programs].astype(np.int64))
-        except (OSError, KeyError, ValueError) as e:
-            raise DataError(path, f"cannot read the {args.split} programs ({e}); run the synthesize stage") from None
+        rows = load_programs(Layout(args.root).synthetic(name))[args.split][: args.programs]
         shapes, programs, lengths = make_batch(domain, rows, torch.device("cpu"))
         table = kind_gaps(model, shapes.float(), programs, lengths, [t.kind for t in domain.tokens.tokens])
         print(f"{'kind':12s} {'share':>6s} {'nll':>6s} {'acc':>6s} {'gap':>6s}")

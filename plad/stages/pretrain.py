@@ -75,11 +75,22 @@ class PretrainConfig:
 
 def load_programs(path: Path) -> dict[str, torch.Tensor]:
     """``train``/``val`` token rows (N, L) int64, -1-padded, and their complexities where the file has them."""
+    import zipfile
+
+    from plad.data import DataError
+
     if not path.exists():
         raise ConfigError(f"{path}: synthetic programs not found; run the synthesize stage first")
-    with np.load(path) as z:
-        return {k: torch.from_numpy(z[k].astype(np.int64))
-                for k in ("train", "val", "train_complexity", "val_complexity") if k in z.files}
+    try:
+        with np.load(path) as z:
+            data = {k: torch.from_numpy(z[k].astype(np.int64))
+                    for k in ("train", "val", "train_complexity", "val_complexity") if k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise DataError(path, f"not a readable synthetic .npz ({type(err).__name__}: {err}); run the synthesize "
+                              "stage again") from None
+    if "train" not in data or "val" not in data:
+        raise DataError(path, "not a synthetic programs file (no train/val arrays); run the synthesize stage again")
+    return data
 
 
 def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.ndarray, np.ndarray]:

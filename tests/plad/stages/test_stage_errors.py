@@ -35,6 +35,18 @@ def test_pretrain_without_synthetic_programs_names_the_file(tmp_path, capsys):
     assert "synthesize stage" in err and str(tmp_path / "nothing" / "data" / "synthetic" / "csg2d.npz") in err
 
 
+@pytest.mark.parametrize("content", [b"not an npz", b""])
+def test_pretrain_with_a_corrupt_synthetic_file_names_the_file(tmp_path, capsys, content):
+    p = tmp_path / "params.yaml"
+    p.write_text("pretrain:\n  csg2d: {}\n")
+    bad = tmp_path / "data" / "synthetic" / "csg2d.npz"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(content)
+    assert pretrain.main(["--params", str(p), "--section", "pretrain.csg2d", "--root", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(bad) in err and "synthesize stage" in err
+
+
 def test_evaluate_with_a_missing_checkpoint_names_the_file(tmp_path, capsys):
     p = tmp_path / "params.yaml"
     p.write_text("evaluate:\n  csg2d: {}\n")
