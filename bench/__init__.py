@@ -11,7 +11,7 @@ def prepared_test_shapes(domain, n: int):
 
     prepared = Path("data/prepared") / f"{domain.name}.npz"
     if prepared.exists():
-        from plad.data import load_prepared
+        from plad.data.files import load_prepared
 
         x = torch.from_numpy(load_prepared(prepared, "test")[:n]).bool()
         return x, f"{len(x)} test shapes of {prepared}"

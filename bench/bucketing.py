@@ -10,7 +10,7 @@ turns batch by batch:
 
 * ``padded``: plain batches, every row as long as the length cap (what pretraining did before);
 * ``trimmed``: the same batches cut to their longest program;
-* ``bucketed``: the pool sorted by length and cut into batches (:mod:`plad.batching`).
+* ``bucketed``: the pool sorted by length and cut into batches (:mod:`plad.data.batching`).
 
 Prints each scheme's seconds and padding share, the mean per-token loss of the three (equal:
 the loss does not depend on the batching), the time ratios, and last ``ratio <padded / bucketed>``,
@@ -24,12 +24,12 @@ import time
 import numpy as np
 import torch
 
-from plad.batching import bucket_batches, padding_share
 from plad.config import load_params, section
+from plad.data.batching import bucket_batches, padding_share
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.model import ModelConfig, PLADNet
-from plad.stages.pretrain import PretrainConfig
+from plad.learn.pretrain import PretrainConfig
+from plad.model.network import ModelConfig, PLADNet
 
 
 def main(argv: list[str] | None = None) -> None:

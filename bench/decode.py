@@ -20,13 +20,13 @@ from contextlib import contextmanager
 
 import torch
 
-import plad.model
+import plad.model.network
 from bench import prepared_test_shapes
 from plad.config import load_params, section
 from plad.domains import get_domain
-from plad.model import KVCache, ModelConfig, PLADNet
-from plad.search import beam_search
-from plad.stages.pretrain import PretrainConfig
+from plad.learn.pretrain import PretrainConfig
+from plad.model.decode import beam_search
+from plad.model.network import KVCache, ModelConfig, PLADNet
 
 
 class ConcatCache:
@@ -52,12 +52,12 @@ def previous_decoding(model: PLADNet):
         rows = torch.arange(len(tokens), device=tokens.device)
         return step(tokens, [c.select(rows) for c in caches], position)
 
-    plad.model.KVCache = ConcatCache
+    plad.model.network.KVCache = ConcatCache
     model.step = reordering_step
     try:
         yield
     finally:
-        plad.model.KVCache = KVCache
+        plad.model.network.KVCache = KVCache
         del model.step
 
 
@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     domain = get_domain(args.domain)
     torch.manual_seed(0)
     if args.model:
-        from plad.checkpoint import load_model
+        from plad.model.checkpoint import load_model
 
         model, _ = load_model(args.model, expect_domain=args.domain)
         net = args.model

@@ -20,8 +20,8 @@ import torch
 from bench import prepared_test_shapes
 from plad.config import load_params, section
 from plad.domains import get_domain
-from plad.model import ModelConfig, PLADNet
-from plad.stages.pretrain import PretrainConfig
+from plad.learn.pretrain import PretrainConfig
+from plad.model.network import ModelConfig, PLADNet
 
 
 def main(argv: list[str] | None = None) -> None:

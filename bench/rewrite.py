@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from plad.data import load_prepared
+from plad.data.files import load_prepared
 from plad.domains import get_domain
 from plad.rewrite import refine, search, search_config
 

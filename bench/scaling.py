@@ -12,7 +12,7 @@ the synthetic programs and the prepared shapes are those of the layout root
 Training: the pretraining step of ``pretrain.<domain>`` (its
 architecture and batch size per process; batches dealt out from one
 permutation as in :mod:`plad.stages.pretrain`, the loss through
-:func:`plad.distributed.data_parallel`), timed over ``--steps`` optimizer
+:func:`plad.learn.distributed.data_parallel`), timed over ``--steps`` optimizer
 steps after warm-up, in 1 process and in 2 processes (gloo on loopback, one
 torch thread each). Throughput is shapes per second over all processes.
 
@@ -57,7 +57,7 @@ def _free_port() -> int:
 def pretrain_config(args: argparse.Namespace):
     """The ``pretrain.<domain>`` config of the params (with the profile)."""
     from plad.config import load_params, section
-    from plad.stages.pretrain import PretrainConfig
+    from plad.learn.pretrain import PretrainConfig
 
     return section(load_params(args.params, profile=args.profile), f"pretrain.{args.domain}", PretrainConfig)
 
@@ -67,11 +67,11 @@ def _train_rank(rank: int, world: int, port: int, args: argparse.Namespace, resu
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    from plad import distributed as dist
     from plad.domains import get_domain
     from plad.layout import Layout
-    from plad.model import ModelConfig, PLADNet
-    from plad.stages.pretrain import load_programs, make_batch
+    from plad.learn import distributed as dist
+    from plad.learn.synthetic import load_programs, make_batch
+    from plad.model.network import ModelConfig, PLADNet
 
     cfg = pretrain_config(args)
     domain = get_domain(args.domain)
@@ -163,12 +163,12 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    from plad.checkpoint import load_model
     from plad.config import load_params, section
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
     from plad.domains import get_domain
     from plad.layout import Layout
-    from plad.model import ModelConfig, PLADNet
+    from plad.model.checkpoint import load_model
+    from plad.model.network import ModelConfig, PLADNet
     from plad.stages.finetune import FinetuneStageConfig
 
     pre = pretrain_config(args)

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import torch
 
-from plad.checkpoint import load_model
 from plad.domains import get_domain
-from plad.search import beam_search
+from plad.model.checkpoint import load_model
+from plad.model.decode import beam_search
 
 
 def main(argv: list[str] | None = None) -> None:

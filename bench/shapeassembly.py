@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.datasets.partnet.execute import nearest_pair_brute, run_text
+from plad.data.datasets.partnet.execute import nearest_pair_brute, run_text
 
 FIXTURE = Path(__file__).resolve().parent.parent.parent / "shared" / "fixtures" / "shapeassembly_reference.npz"
 
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
 
     original = None
     if args.tar:
-        from plad.datasets.partnet.dataset import read_source
+        from plad.data.datasets.partnet.dataset import read_source
 
         programs, _ = read_source(args.tar)
         texts = [programs[k] for k in sorted(programs)]

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     path = [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(path)}
-    ours_cmd = [sys.executable, "-c", "import sys; from plad.cli import main; sys.exit(main())",
+    ours_cmd = [sys.executable, "-c", "import sys; from plad.serve.cli import main; sys.exit(main())",
                 *shlex.split(args.command)]
     base_cmd = [sys.executable, "-c", "import argparse"]
     _time(ours_cmd, env), _time(base_cmd, env)   # warm the file cache

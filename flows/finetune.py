@@ -60,7 +60,7 @@ def _infer_shard(model, domain_name: str, shapes: np.ndarray, beam: int, batch: 
     import torch
 
     from plad.domains import get_domain
-    from plad.search import infer_batched
+    from plad.model.decode import infer_batched
 
     if threads:
         torch.set_num_threads(threads)
@@ -68,7 +68,7 @@ def _infer_shard(model, domain_name: str, shapes: np.ndarray, beam: int, batch: 
 
 
 def sharded_infer(domain_name: str, beam: int, batch: int, cfg: FlowsConfig):
-    """An ``Infer`` for :func:`plad.rounds.run_rounds` that maps shards of the shapes over tasks."""
+    """An ``Infer`` for :func:`plad.learn.rounds.run_rounds` that maps shards of the shapes over tasks."""
     shard_task = task(_infer_shard, name="infer shard", retries=cfg.retries,
                       retry_delay_seconds=cfg.retry_delay_seconds, cache_policy=NONE)
 

@@ -8,14 +8,15 @@ from __future__ import annotations
 from pathlib import Path
 
 #: the tiny architecture of the tests (an untrained model: fast, and its numbers mean nothing);
-#: dropout as :class:`plad.model.Architecture`'s default
+#: dropout as :class:`plad.model.network.Architecture`'s default
 ARCHITECTURE = {"d_model": 32, "n_layers": 1, "n_heads": 2, "dim_ff": 64, "enc_channels": (4, 8, 8, 16)}
 
 
 def tiny_config(domain: str = "csg2d", **overrides):
-    """The :class:`plad.model.ModelConfig` of the tiny network for ``domain``; ``overrides`` replace its knobs."""
+    """The :class:`plad.model.network.ModelConfig` of the tiny network for ``domain``; ``overrides`` replace its
+    knobs."""
     from plad.domains import get_domain
-    from plad.model import ModelConfig
+    from plad.model.network import ModelConfig
 
     spec = get_domain(domain)
     base = dict(vocab_size=len(spec.tokens), max_len=spec.tokens.max_len, input_shape=spec.shape, **ARCHITECTURE)
@@ -23,10 +24,11 @@ def tiny_config(domain: str = "csg2d", **overrides):
 
 
 def tiny_model(domain: str = "csg2d", seed: int = 0, **overrides):
-    """A tiny :class:`plad.model.PLADNet` for ``domain``, initialized from torch seed ``seed`` (training mode)."""
+    """A tiny :class:`plad.model.network.PLADNet` for ``domain``, initialized from torch seed ``seed`` (training
+    mode)."""
     import torch
 
-    from plad.model import PLADNet
+    from plad.model.network import PLADNet
 
     config = tiny_config(domain, **overrides)
     torch.manual_seed(seed)
@@ -35,8 +37,8 @@ def tiny_model(domain: str = "csg2d", seed: int = 0, **overrides):
 
 def tiny_checkpoint(path: Path, domain: str = "csg2d", seed: int = 0, **overrides) -> Path:
     """The tiny model (as :func:`tiny_model`) saved as a checkpoint at ``path``; ``path``."""
-    from plad.checkpoint import save_checkpoint
     from plad.domains import get_domain
+    from plad.model.checkpoint import save_checkpoint
 
     return save_checkpoint(path, tiny_model(domain, seed, **overrides), domain, get_domain(domain).tokens.names)
 

@@ -18,18 +18,16 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import torch
 
-from plad.data import TargetSource
-from plad.grammar import ProgramError, TokenTable
+from plad.data.files import TargetSource
+from plad.domains.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
 
 _NONE: Mapping[str, float] = MappingProxyType({})
-if TYPE_CHECKING:  # pragma: no cover
-    from plad.rewrite.space import RewriteSpace
 
 
 class Domain(abc.ABC):
@@ -41,9 +39,10 @@ class Domain(abc.ABC):
     shape: tuple[int, ...]
     #: the domain's reconstruction metric (declares whether higher is better)
     metric: Metric
-    #: optional: program rewriting and search support (the moves, program structure and
-    #: candidate generators of :mod:`plad.rewrite`); None: the domain has no search support
-    rewrite: RewriteSpace | None = None
+    #: optional: program rewriting and search support, a :class:`plad.domains.space.RewriteSpace` (the moves,
+    #: program structure and candidate generators of :mod:`plad.rewrite`); None: the domain has no search
+    #: support. Not annotated with the class: ``plad.domains.space`` imports this module.
+    rewrite: Any = None
 
     # -- how results are shown (optional) ---------------------------------------------------
     #: name in tables and figures, e.g. ``"2D CSG"``; default: the registry name
@@ -124,7 +123,7 @@ class Domain(abc.ABC):
         """
         raise NotImplementedError(f"domain {self.name} has no floor baseline")
 
-    #: the token kind (:attr:`plad.grammar.Token.kind`) whose count is a program's complexity, the
+    #: the token kind (:attr:`plad.domains.grammar.Token.kind`) whose count is a program's complexity, the
     #: structural size the synthetic sampler stratifies by and the pretraining curriculum orders by
     #: (primitives of CSG, cuboids of ShapeAssembly); None: the domain offers no complexity
     complexity_kind: str | None = None

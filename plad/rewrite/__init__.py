@@ -5,7 +5,7 @@ Rewriters (each batched over many programs, never returning a worse program):
 :mod:`.prune` (SIRI's pruning rules) and :mod:`.insert` (insertion of a
 primitive where the residual says it helps). :mod:`.driver` composes them:
 :func:`refine` from given programs, :func:`search` from scratch. A domain
-takes part by returning a :class:`~plad.rewrite.space.RewriteSpace` from its
+takes part by returning a :class:`~plad.domains.space.RewriteSpace` from its
 ``rewrite`` member.
 """
 from plad.rewrite.driver import RefineConfig, Result, SearchConfig, refine, search, search_config

@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
     from plad.fsutil import atomic_write_text
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

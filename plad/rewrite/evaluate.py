@@ -1,7 +1,7 @@
 """Batched scoring of candidate programs, shared by all rewriters.
 
 A :class:`Scorer` holds one batch of targets. Every rewriter hands it all
-candidates of all its programs at once (:class:`~plad.rewrite.space.Candidates`,
+candidates of all its programs at once (:class:`~plad.domains.space.Candidates`,
 each row tagged with the program it is for) and gets back, per program, the
 best candidate: the domain's screen (if any) keeps the ``screen_keep`` best
 of each program's candidates, then the kept ones are executed by the domain's
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from plad.rewrite.space import Candidates
+from plad.domains.space import Candidates
 
 if TYPE_CHECKING:  # pragma: no cover
     from plad.domains.base import Domain

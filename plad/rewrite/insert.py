@@ -1,7 +1,7 @@
 """Insertion: add one primitive (or part) where the residual says it helps.
 
 The domain's candidate generator
-(:meth:`~plad.rewrite.space.RewriteSpace.insertions`) proposes, for every
+(:meth:`~plad.domains.space.RewriteSpace.insertions`) proposes, for every
 program, programs with one more primitive, from the program's execution and
 its target (e.g. every draw token with each operator; a box around the
 largest missed or extra region). All candidates of all programs are screened

@@ -2,7 +2,7 @@
 
 The program's structure stays fixed; its substitutable tokens (a primitive's
 parameters, a draw token, an operator: whatever the domain's
-:meth:`~plad.rewrite.space.RewriteSpace.blocks` declares) change one at a
+:meth:`~plad.domains.space.RewriteSpace.blocks` declares) change one at a
 time. A sweep visits the blocks in token order; at block j every program
 that has one tries every single-slot substitution of its block j, all
 programs' candidates in one batch, and keeps the best if it improves the
@@ -19,8 +19,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from plad.domains.space import Candidates, Slot
 from plad.rewrite.evaluate import Scorer, improves
-from plad.rewrite.space import Candidates, Slot
 
 
 def _block_candidates(programs: Sequence[Sequence[int]], rows: Sequence[int],

@@ -1,7 +1,7 @@
 """Code pruning (CP): SIRI's two pruning rules, executed exactly.
 
 Over the expression tree the domain declares
-(:meth:`~plad.rewrite.space.RewriteSpace.nodes`):
+(:meth:`~plad.domains.space.RewriteSpace.nodes`):
 
 * **bottom-up**: execute every sub-expression (all nodes of all programs in
   one batch); a boolean node whose output equals one of its children's
@@ -24,8 +24,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from plad.domains.space import Candidates, Node
 from plad.rewrite.evaluate import Scorer, improves, oriented
-from plad.rewrite.space import Candidates, Node
 
 #: SIRI's tolerances of the top-down rule (absolute, relative to the best sub-tree's value)
 TOLERANCE = (0.001, 0.005)

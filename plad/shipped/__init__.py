@@ -2,7 +2,7 @@
 
 Layout of the folder (this package's directory, or ``$PLAD_SHIPPED_DIR``)::
 
-    <domain>/model.pt     a checkpoint (plad.checkpoint: config, token table, weights; no training state)
+    <domain>/model.pt     a checkpoint (plad.model.checkpoint: config, token table, weights; no training state)
     <domain>/model.json   the sidecar: the checkpoint's sha256 and size, its config and token table,
                           its test metric values, and provenance (params, git revision, data checksums)
 
@@ -119,8 +119,8 @@ def _provenance(domain: str, root: Path, params_path: Path, data_dir: str | None
     import importlib
 
     from plad.config import PER_DOMAIN, load_params
-    from plad.data import resolve_data_dir
-    from plad.datasets import FILES
+    from plad.data.datasets import FILES
+    from plad.data.files import resolve_data_dir
     from plad.domains import get_domain
     from plad.layout import Layout
 
@@ -173,9 +173,9 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     root the model was trained in): ``params`` with its profile, the git revision, the data files'
     checksums. Both files are written atomically; an earlier shipped model is replaced.
     """
-    from plad.checkpoint import CheckpointError, load_model, save_checkpoint
     from plad.domains import get_domain
     from plad.fsutil import atomic_write_text
+    from plad.model.checkpoint import CheckpointError, load_model, save_checkpoint
 
     checkpoint, metrics, root = Path(checkpoint), Path(metrics), Path(root)
     try:

@@ -8,7 +8,7 @@ shapes; writes to ``results/eval/<method>/<domain>/`` (:mod:`plad.layout`):
 ``<split>_programs.csv`` (index, metric value, program text per shape) and
 ``grid.png`` (target | reconstruction for a fixed, evenly spaced set of test
 shapes). Evaluating ``sp`` also scores the domain's floor baseline
-(:mod:`plad.floor`, e.g. one box per shape) on the same shapes, into
+(:mod:`plad.eval.floor`, e.g. one box per shape) on the same shapes, into
 ``results/eval/floor/<domain>/`` (``metrics.json`` and the programs; a domain
 without a floor gets a ``metrics.json`` saying so).
 
@@ -31,15 +31,15 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from plad.checkpoint import load_model, read_checkpoint
-from plad.data import evenly_spaced_index, load_split
+from plad.data.files import evenly_spaced_index, load_split
+from plad.data.pictures import pair_grid, save_png
 from plad.device import resolve_device
 from plad.domains import get_domain
-from plad.floor import evaluate_floor
+from plad.eval.floor import evaluate_floor
 from plad.fsutil import atomic_write_text
 from plad.layout import FLOOR, GRID, METRICS, SP, Layout, eval_key, programs_csv
-from plad.pictures import pair_grid, save_png
-from plad.search import infer_batched
+from plad.model.checkpoint import load_model, read_checkpoint
+from plad.model.decode import infer_batched
 from plad.stages import StageContext, stage_main, write_programs_csv
 from plad.tracking import StageRun
 

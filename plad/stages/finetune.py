@@ -10,12 +10,12 @@ and writes to ``runs/finetune/<domain>/<key>/`` (:mod:`plad.layout`):
 wall-clock seconds), ``summary.json`` (also copied to
 ``results/finetune/<domain>/<key>.json``), and the method's resumable state
 (P_BEST, generator, search chunks, ...). A method with a ``search`` block seeds
-and rewrites P_BEST by search (:mod:`plad.pbest_search`).
+and rewrites P_BEST by search (:mod:`plad.learn.pbest_search`).
 A killed run, started again, resumes at its last finished round; a run folder started from
 another pretrained model, other shapes or another method (``origin.json``) is started over. The PLAD
-rounds are :mod:`plad.rounds`, the RL baseline :mod:`plad.rl`. Data-parallel
+rounds are :mod:`plad.learn.rounds`, the RL baseline :mod:`plad.learn.rl`. Data-parallel
 on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
-(:mod:`plad.distributed`); rank 0 writes the outputs and the MLflow run.
+(:mod:`plad.learn.distributed`); rank 0 writes the outputs and the MLflow run.
 """
 from __future__ import annotations
 
@@ -27,12 +27,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad import distributed as dist
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, STATE, SUMMARY, Layout
-from plad.methods import MethodConfig
-from plad.rl import RLConfig
-from plad.rounds import RoundHooks, RoundsConfig
+from plad.learn import distributed as dist
+from plad.learn.methods import MethodConfig
+from plad.learn.rl import RLConfig
+from plad.learn.rounds import RoundHooks, RoundsConfig
 from plad.stages import StageContext, stage_main
 
 
@@ -57,8 +57,8 @@ class FinetuneStageConfig:
 
 def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
     from plad.config import ConfigError
-    from plad.methods import parse_mixture
-    from plad.pbest import MODES
+    from plad.learn.methods import parse_mixture
+    from plad.learn.pbest import MODES
 
     if cfg.key is None:
         raise ConfigError(f"finetune.key is not set: choose one of {', '.join(cfg.methods) or '(no methods)'}")
@@ -74,7 +74,7 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
         raise ConfigError(f"finetune.methods.{cfg.key}.pbest_mode {m.pbest_mode!r}: one of {', '.join(MODES)}")
     if m.search is not None:
         from plad.domains import get_domain
-        from plad.pbest_search import check
+        from plad.learn.pbest_search import check
 
         if m.method == "rl":
             raise ConfigError(f"finetune.methods.{cfg.key}.search: RL has no P_BEST to search for")
@@ -86,7 +86,7 @@ def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np
     """(training shapes, validation shapes) of the real data, limited as configured: evenly spaced over each
     split, not its first shapes (PartNet's splits are ordered by category: the first 1,000 training shapes
     are all chairs, which is what the 3D fine-tuning runs before this rule trained on)."""
-    from plad.data import load_split
+    from plad.data.files import load_split
 
     path = layout.prepared(cfg.domain)
     return load_split(path, "train", cfg.train_limit)[0], load_split(path, "val", cfg.val_limit)[0]
@@ -103,7 +103,7 @@ def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> 
     The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
     the pretrained model changes; this is what tells a resumable run from a stale one.
     """
-    from plad.data import _sha256_file
+    from plad.data.files import _sha256_file
 
     method = {k: v for k, v in asdict(spec).items() if k != "max_minutes"}
     return {"model_sha256": _sha256_file(layout.model(cfg.domain)),
@@ -134,13 +134,13 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     ``hooks`` (optional) run the steps of a PLAD round and hear about each
     round; for RL, ``hooks.on_unit`` hears about each epoch.
     """
-    from plad.checkpoint import load_model
     from plad.device import resolve_device
     from plad.domains import get_domain
-    from plad.job import Job
-    from plad.loop import budget_seconds
-    from plad.rl import run_rl
-    from plad.rounds import run_rounds
+    from plad.learn.job import Job
+    from plad.learn.loop import budget_seconds
+    from plad.learn.rl import run_rl
+    from plad.learn.rounds import run_rounds
+    from plad.model.checkpoint import load_model
 
     spec = method_of(cfg)
     hooks = hooks or RoundHooks()
@@ -163,7 +163,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
         if spec.search is not None:   # P_BEST seeded and rewritten by search after each round's inference
-            from plad.pbest_search import PBestSearch
+            from plad.learn.pbest_search import PBestSearch
 
             hooks = replace(hooks, after_infer=PBestSearch(domain, spec.search, job.out_dir, cfg.seed).after_infer)
         summary = run_rounds(job, spec, cfg.plad, hooks)
@@ -179,8 +179,8 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
 
 def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(), infer=None, step=None) -> dict:
     """:func:`finetune_stage` as one MLflow run, with a nested run per round (or RL epoch)."""
-    from plad.checkpoint import read_checkpoint
-    from plad.loop import read_state
+    from plad.learn.loop import read_state
+    from plad.model.checkpoint import read_checkpoint
     from plad.tracking import StageRun
 
     method_of(cfg)

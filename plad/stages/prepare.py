@@ -4,10 +4,10 @@ Each domain names where its real shapes come from (its target source,
 :attr:`plad.domains.base.Domain.targets`). Every source of the configured
 domains is prepared once from the data directory (a published file is
 checked against its sha256; PartNet's programs are executed and voxelized,
-with a report and a failures log, see :mod:`plad.datasets.partnet.dataset`),
+with a report and a failures log, see :mod:`plad.data.datasets.partnet.dataset`),
 and its splits are written as ``data/prepared/<domain>.npz`` (bit-packed) plus
 ``data/prepared/<domain>.json`` (counts and occupancy) for every domain on it
-(:mod:`plad.layout`), atomically (:func:`plad.data.write_prepared`).
+(:mod:`plad.layout`), atomically (:func:`plad.data.files.write_prepared`).
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def prepare(cfg: PrepareConfig, layout: Layout = Layout()) -> dict[str, dict]:
     Returns ``{"domains": {domain: summary}, "sources": {source: report}}``.
     """
     from plad.config import ConfigError
-    from plad.data import DataError, write_prepared
+    from plad.data.files import DataError, write_prepared
     from plad.domains import get_domain
 
     groups = target_groups(cfg.domains)

@@ -27,11 +27,9 @@ import sys
 from dataclasses import asdict, dataclass, field, replace
 
 from plad.config import ConfigError
-from plad.data import DataError
+from plad.data.files import DataError
 from plad.domains import get_domain
-from plad.fsutil import atomic_write_text
-from plad.layout import AMORTIZATION_PLOT, AMORTIZATION_TABLE, CONVERGENCE, REPORT, SP, TABLE, Layout
-from plad.report import (
+from plad.eval.report import (
     amortization_keys,
     amortization_markdown,
     amortization_png,
@@ -44,6 +42,8 @@ from plad.report import (
     table_markdown,
     timed_from_files,
 )
+from plad.fsutil import atomic_write_text
+from plad.layout import AMORTIZATION_PLOT, AMORTIZATION_TABLE, CONVERGENCE, REPORT, SP, TABLE, Layout
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags
 

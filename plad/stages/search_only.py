@@ -32,7 +32,7 @@ class SearchOnlyConfig:
 
 def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
     from plad.config import ConfigError
-    from plad.data import load_split
+    from plad.data.files import load_split
     from plad.domains import get_domain
     from plad.fsutil import atomic_write_text
     from plad.rewrite import search_config

@@ -10,7 +10,7 @@ so ``import plad.tracking`` stays cheap):
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
   resolved to checkpoint files;
 * :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model
-  (:class:`PladPyfuncModel`), logged and loaded (:func:`plad.resolve.load_pyfunc` loads
+  (:class:`PladPyfuncModel`), logged and loaded (:func:`plad.serve.resolve.load_pyfunc` loads
   the one ``plad infer`` would use: ``--model``, the configured store's champion, the shipped one).
 """
 from __future__ import annotations

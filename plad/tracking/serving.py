@@ -115,9 +115,9 @@ def _build_pyfunc_class() -> type:
     import pandas as pd
     import torch
 
-    from plad.checkpoint import load_model
     from plad.domains import get_domain
-    from plad.search import infer_programs
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_programs
 
     def load_context(self, context):
         device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from plad.data.inputs import read_inputs
 from plad.domains import domain_names, get_domain
-from plad.inputs import read_inputs
 from tests.conftest import REPO_ROOT as REPO
 
 EXAMPLES = REPO / "examples"
@@ -43,7 +43,7 @@ def test_the_npy_examples_are_the_executed_programs():
 
 
 def test_the_shapeassembly_programs_execute_to_their_voxels(tmp_path):
-    from plad.cli import main
+    from plad.serve.cli import main
 
     for stem in ("chair", "table"):
         assert main(["execute", "shapeassembly", str(EXAMPLES / "shapeassembly" / f"{stem}.txt"),

@@ -39,8 +39,8 @@ def test_fine_tuning_overrides_in_the_readme_are_keys_of_their_section():
 
 
 def test_the_real_data_table_names_every_source_file():
-    from plad.datasets.cad import CAD
-    from plad.datasets.partnet.source import FOLDER, SOURCE_NAME
+    from plad.data.datasets.cad import CAD
+    from plad.data.datasets.partnet.source import FOLDER, SOURCE_NAME
 
     section = README[README.index("## The real data"):README.index("## Pipeline")]
     assert f"{FOLDER}/{SOURCE_NAME}" in section

@@ -23,7 +23,7 @@ def prefect_harness(tmp_path_factory):
 
 def test_prepare_flow_matches_the_stage(tmp_path, datasets_dir, prefect_harness):
     from flows.prepare_data import prepare_data
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
 
     params = tmp_path / "params.yaml"
     params.write_text(f"domains: [csg2d, csg3d, shapeassembly]\n"
@@ -97,10 +97,10 @@ def test_retraining_schedule_is_defined_by_the_params(smoke_params):
 
 def test_sharded_inference_equals_one_batch(smoke_params):
     from flows.finetune import _infer_shard
-    from plad.checkpoint import load_model
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
     from plad.domains import get_domain
-    from plad.search import infer_batched
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_batched
 
     layout = Layout(smoke_params.parent)
     model, _ = load_model(layout.model("csg2d"))

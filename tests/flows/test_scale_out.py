@@ -106,10 +106,10 @@ def flow_task_runs(api_url: str, run_name: str) -> list[tuple[str, str]]:
 
 def one_process_pbest(root: Path):
     """What round 1 puts in P_BEST, inferred in this process: best-of-beam programs and values."""
-    from plad.checkpoint import load_model
-    from plad.data import evenly_spaced, load_prepared
+    from plad.data.files import evenly_spaced, load_prepared
     from plad.domains import get_domain
-    from plad.search import infer_batched
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_batched
 
     layout = Layout(root)
     model, _ = load_model(layout.model("csg2d"))
@@ -130,7 +130,7 @@ def test_round_inference_on_a_dask_cluster_survives_a_killed_worker(prefect_serv
     from distributed import Client
 
     from plad.domains import get_domain
-    from plad.pbest import PBest
+    from plad.learn.pbest import PBest
 
     api_url, server_env = prefect_server
     before = children()

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from plad.data import load_prepared, write_prepared
+from plad.data.files import load_prepared, write_prepared
 from plad.layout import Layout
 from tests.procs import child_env, children, free_port, left_behind, start, stop, tail, wait_http
 from tests.tiny import csg2d_inputs

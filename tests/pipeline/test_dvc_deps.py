@@ -7,7 +7,7 @@ module: every ``import``/``from`` anywhere in a file of ``plad/`` or
 module of each domain it loads through the registry (its own domain, or
 every domain of ``domains``) with that module's closure. A code dependency
 that no expansion of its stage needs is an error too (editing
-``plad/report.py`` must not rerun pretraining); one template serves every
+``plad/eval/report.py`` must not rerun pretraining); one template serves every
 domain, so a per-domain stage depends on the shared code of every domain's
 plugin (DVC cannot template a list per domain).
 """
@@ -25,6 +25,7 @@ import pytest
 import yaml
 
 from plad.config import INJECTED, PER_DOMAIN, load_params
+from plad.eval.report import amortization_keys
 from plad.layout import (
     AMORTIZATION_PLOT,
     AMORTIZATION_TABLE,
@@ -44,7 +45,6 @@ from plad.layout import (
     eval_key,
     programs_csv,
 )
-from plad.report import amortization_keys
 from tests.conftest import REPO_ROOT
 from tests.plad.domains.test_plugin_boundary import imported_modules
 
@@ -215,7 +215,7 @@ def test_every_stage_depends_on_the_code_it_imports_and_no_other():
 
 
 def test_editing_the_report_code_reruns_only_the_report():
-    users = {s.name for s in stages() if any(covers(d, "plad/report.py") for d in s.deps)}
+    users = {s.name for s in stages() if any(covers(d, "plad/eval/report.py") for d in s.deps)}
     assert users == {"report"}
 
 

@@ -7,13 +7,13 @@ import torch
 
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.job import Job
-from plad.loop import budget_seconds
-from plad.methods import MethodConfig
-from plad.pbest import PBest
-from plad.rounds import RoundsConfig, run_rounds
-from plad.train import TrainConfig
-from plad.ws import WSConfig, new_generator, sample_dataset, train_generator
+from plad.learn.job import Job
+from plad.learn.loop import budget_seconds
+from plad.learn.methods import MethodConfig
+from plad.learn.pbest import PBest
+from plad.learn.rounds import RoundsConfig, run_rounds
+from plad.learn.train import TrainConfig
+from plad.learn.ws import WSConfig, new_generator, sample_dataset, train_generator
 
 DOMAIN = get_domain("csg2d")
 

@@ -15,10 +15,10 @@ PROFILES = ("cpu", "smoke", "paper")
 
 def stage_classes():
     from flows.finetune import FlowsConfig
+    from plad.learn.pretrain import PretrainConfig
     from plad.stages.evaluate import EvaluateConfig
     from plad.stages.finetune import FinetuneStageConfig
     from plad.stages.prepare import PrepareConfig
-    from plad.stages.pretrain import PretrainConfig
     from plad.stages.report import ReportConfig
     from plad.stages.search_only import SearchOnlyConfig
     from plad.stages.synthesize import SynthesizeConfig

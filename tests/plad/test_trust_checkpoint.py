@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from plad.checkpoint import FORMAT, CheckpointError, convert, load_model, read_checkpoint, save_checkpoint
 from plad.domains import get_domain
-from plad.model import ModelConfig, PLADNet
+from plad.model.checkpoint import FORMAT, CheckpointError, convert, load_model, read_checkpoint, save_checkpoint
+from plad.model.network import ModelConfig, PLADNet
 
 
 def tiny(domain_name: str = "csg2d") -> PLADNet:
@@ -41,7 +41,7 @@ def _crafted(path, marker):
 
 
 def test_a_checkpoint_carrying_a_pickled_callable_is_refused_and_runs_nothing(tmp_path, capsys):
-    from plad.cli import main
+    from plad.serve.cli import main
 
     bad, marker = tmp_path / "bad.pt", tmp_path / "ran"
     _crafted(bad, marker)
@@ -61,7 +61,7 @@ def test_a_checkpoint_carrying_a_pickled_callable_is_refused_and_runs_nothing(tm
 
 
 def test_a_generator_file_with_a_callable_is_refused(tmp_path):
-    from plad.ws import load_generator
+    from plad.learn.ws import load_generator
 
     bad, marker = tmp_path / "gen.pt", tmp_path / "ran"
     buf = io.BytesIO()
@@ -74,7 +74,7 @@ def test_a_generator_file_with_a_callable_is_refused(tmp_path):
 
 def test_training_state_round_trips_as_plain_data(tmp_path):
     """A resumable last.pt (optimizer, RNG states) loads with weights_only=True and restores the RNGs."""
-    from plad.train import _rng_state, _set_rng_state
+    from plad.learn.train import _rng_state, _set_rng_state
 
     model = tiny()
     opt = torch.optim.Adam(model.parameters())
@@ -99,7 +99,7 @@ def test_save_refuses_anything_but_plain_data(tmp_path):
 
 def test_old_checkpoints_are_converted_by_the_documented_command(tmp_path, capsys):
     """An older last.pt pickled NumPy's RNG state (an ndarray): refused, then converted once, then loadable."""
-    from plad.checkpoint import main
+    from plad.model.checkpoint import main
 
     model = tiny()
     old = {"format": FORMAT, "domain": "csg2d", "tokens": get_domain("csg2d").tokens.names,
@@ -109,7 +109,7 @@ def test_old_checkpoints_are_converted_by_the_documented_command(tmp_path, capsy
     buf = io.BytesIO()
     torch.save(old, buf)
     path.write_bytes(buf.getvalue())
-    with pytest.raises(CheckpointError, match="python -m plad.checkpoint convert"):
+    with pytest.raises(CheckpointError, match="python -m plad.model.checkpoint convert"):
         read_checkpoint(path)
     assert main(["convert", str(path), str(tmp_path / "new.pt")]) == 0
     payload = read_checkpoint(tmp_path / "new.pt")

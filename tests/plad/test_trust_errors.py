@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from plad.cli import main
+from plad.serve.cli import main
 from tests.conftest import shared_dir
 
 TARBALL = shared_dir() / "datasets" / "shapeassembly_partnet" / "partnet_programs.tar.gz"
@@ -79,8 +79,8 @@ def test_params_ranges_and_relations_are_one_line_naming_the_key(tmp_path, capsy
 
 
 def test_the_partnet_tarball_is_checked_against_its_sha256(tmp_path):
-    from plad.data import DataError
-    from plad.datasets.partnet.dataset import SOURCE_SHA256, find_source, load_split, read_source
+    from plad.data.datasets.partnet.dataset import SOURCE_SHA256, find_source, load_split, read_source
+    from plad.data.files import DataError
 
     folder = tmp_path / "shapeassembly_partnet"
     folder.mkdir()

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plad.cli import main
 from plad.domains import domain_names, get_domain
+from plad.serve.cli import main
 from tests.conftest import REPO_ROOT, require_shared
 
 REPO = REPO_ROOT
@@ -95,7 +95,7 @@ def _files(domain: str, folder: Path, rng: np.random.Generator) -> list[Path]:
 
 @pytest.mark.parametrize("domain", domain_names())
 def test_input_files_never_traceback(domain, tmp_path, capsys):
-    from plad.inputs import read_inputs
+    from plad.data.inputs import read_inputs
 
     rng = np.random.default_rng(SEED)
     folder = tmp_path / "in"
@@ -175,5 +175,8 @@ def test_params_values_never_traceback_and_a_refused_one_changes_nothing(tmp_pat
 
 
 def _config_class(module) -> str:
-    return next(n for n, v in vars(module).items()
-                if isinstance(v, type) and n.endswith("Config") and v.__module__ == module.__name__)
+    """The config class the stage's ``main`` hands to ``stage_main`` (defined in the stage or imported)."""
+    import inspect
+    import re
+
+    return re.search(r'stage_main\("\w+", (\w+),', inspect.getsource(module.main)).group(1)

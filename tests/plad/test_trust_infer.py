@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 import torch
 
-from plad.cli import main
 from plad.domains import get_domain
+from plad.serve.cli import main
 from tests.conftest import REPO_ROOT
 
 REPO = REPO_ROOT
 
 
 def _tiny(domain_name: str):
-    from plad.model import ModelConfig, PLADNet
+    from plad.model.network import ModelConfig, PLADNet
 
     d = get_domain(domain_name)
     torch.manual_seed(0)
@@ -32,7 +32,7 @@ def _tiny(domain_name: str):
 
 @pytest.fixture(scope="module")
 def model2d(tmp_path_factory):
-    from plad.checkpoint import save_checkpoint
+    from plad.model.checkpoint import save_checkpoint
 
     path = tmp_path_factory.mktemp("model") / "csg2d.pt"
     return save_checkpoint(path, _tiny("csg2d"), "csg2d", get_domain("csg2d").tokens.names)
@@ -125,7 +125,7 @@ def test_an_empty_target_is_refused_in_every_domain(domain, tmp_path, capsys):
 
 
 def _infer_cmd(model, inputs, out):
-    code = "import sys; from plad.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from plad.serve.cli import main; sys.exit(main(sys.argv[1:]))"
     return [sys.executable, "-c", code, "infer", "csg2d", *map(str, inputs), "--model", str(model), "--beam", "2",
             "--out", str(out)]
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.data import TargetSource
+from plad.data.files import TargetSource
 from plad.domains.base import Domain
 from plad.domains.csg2d.executor import Executor
 from plad.domains.csg2d.sampler import sample_programs
 from plad.domains.csg2d.tokens import CANVAS, format_program, parse, token_table
-from plad.grammar import TokenTable
+from plad.domains.grammar import TokenTable
 from plad.metrics import Metric, chamfer_metric
 
 
@@ -81,7 +81,7 @@ class CSG2D(Domain):
     @property
     def targets(self) -> TargetSource:
         """CSGNet's CAD drawings."""
-        from plad.datasets.cad import TARGETS
+        from plad.data.datasets.cad import TARGETS
 
         return TARGETS
 

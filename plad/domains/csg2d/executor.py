@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from plad.domains.csg2d.tokens import CANVAS, render_primitive, token_table
-from plad.grammar import TokenTable
+from plad.domains.grammar import TokenTable
 
 # kind codes per token
 _PAD, _DRAW, _OP, _STOP = 0, 1, 2, 3

@@ -1,4 +1,4 @@
-"""2D CSG's rewriting moves (:class:`plad.rewrite.space.RewriteSpace`).
+"""2D CSG's rewriting moves (:class:`plad.domains.space.RewriteSpace`).
 
 * PO blocks: each draw token, together with the operator right after it
   (the one that combines it, in a postfix chain); an operator that follows
@@ -33,10 +33,10 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from plad.domains.bits import popcount
 from plad.domains.csg2d.executor import pack
 from plad.domains.csg2d.tokens import CANVAS, R_VALUES, XY_VALUES
-from plad.rewrite.bits import popcount
-from plad.rewrite.space import Candidates, Node, RewriteSpace, Slot
+from plad.domains.space import Candidates, Node, RewriteSpace, Slot
 
 _OPERATORS = ("union", "difference", "intersection")
 _LOW63 = 0x7FFFFFFFFFFFFFFF

@@ -8,7 +8,7 @@ clipping, is non-empty and lies entirely inside the 64 x 64 canvas. That
 gives 424 draw tokens (CSGNet keeps 396 of them), then the operators ``+``
 (union), ``*`` (intersection), ``-`` (difference) and the stop token ``$``.
 
-Programs are postfix; see :mod:`plad.grammar` for how the stack machine
+Programs are postfix; see :mod:`plad.domains.grammar` for how the stack machine
 (``shape`` symbols) makes the grammar data.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 from skimage import draw
 
-from plad.grammar import ProgramError, Token, TokenTable
+from plad.domains.grammar import ProgramError, Token, TokenTable
 
 CANVAS = 64
 KINDS = ("c", "s", "t")

@@ -7,7 +7,7 @@ Modules: :mod:`.tokens` (vocabulary, grammar, text form), :mod:`.executor`
 Executed shapes are bool (B, 32, 32, 32) indexed [x, y, z], voxel (i, j, k)
 centered at (i, j, k) in the parameters' index units. The real target shapes
 are the PartNet shapes voxelized at 32^3 on the same grid and indexing
-(:mod:`plad.datasets.partnet`).
+(:mod:`plad.data.datasets.partnet`).
 """
 from __future__ import annotations
 
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.data import TargetSource
+from plad.data.files import TargetSource
 from plad.domains.base import Domain
 from plad.domains.csg3d.executor import Executor
 from plad.domains.csg3d.tokens import RES, format_program, parse, token_table
-from plad.grammar import TokenTable
+from plad.domains.grammar import TokenTable
 from plad.metrics import IOU, Metric
 
 
@@ -97,7 +97,7 @@ class CSG3D(Domain):
     @property
     def targets(self) -> TargetSource:
         """The PartNet shapes (executed ShapeAssembly programs), voxelized at 32^3."""
-        from plad.datasets.partnet.dataset import TARGETS
+        from plad.data.datasets.partnet.dataset import TARGETS
 
         return TARGETS
 

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from plad.domains.csg3d.tokens import N_PARAMS, RES, token_table
-from plad.grammar import TokenTable
+from plad.domains.grammar import TokenTable
 
 # step codes of the reversed structural sequence
 _NOOP, _PRIM, _UNION, _INTER, _DIFF = 0, 1, 2, 3, 4

@@ -32,14 +32,14 @@ def mesh_arrays(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def save_mesh(grid: np.ndarray, path: str | Path) -> None:
     """Write the surface of a voxel grid as a triangle mesh (.ply or .obj) with open3d."""
-    from plad.mesh import write_mesh
+    from plad.data.mesh import write_mesh
 
     write_mesh(*mesh_arrays(grid), path)
 
 
 def save_views(grid: np.ndarray, path: str | Path, title: str | None = None) -> None:
     """PNG with three orthographic depth views (front: x-y, side: z-y, top: x-z) of a voxel grid."""
-    from plad.pictures import save_views as views
+    from plad.data.pictures import save_views as views
 
     views(grid, path, title)
 

@@ -1,4 +1,4 @@
-"""3D CSG's rewriting moves (:class:`plad.rewrite.space.RewriteSpace`).
+"""3D CSG's rewriting moves (:class:`plad.domains.space.RewriteSpace`).
 
 * PO blocks: first one block with every boolean operator (each may become
   one of the other two), then one block per primitive, in token order: its
@@ -26,11 +26,11 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from plad.domains.bits import packed_iou
+from plad.domains.boxes import residual_boxes
 from plad.domains.csg3d.executor import EMPTY_PRIMITIVE, FULL_PRIMITIVE, pack, render_primitives
 from plad.domains.csg3d.tokens import N_PARAMS, OPERATORS, PARAM_MAX, PARAM_MIN, PRIMITIVES
-from plad.rewrite.bits import packed_iou
-from plad.rewrite.boxes import residual_boxes
-from plad.rewrite.space import Candidates, Node, RewriteSpace, Slot
+from plad.domains.space import Candidates, Node, RewriteSpace, Slot
 
 #: parameter steps of PO
 LOCAL_STEPS = (-2, -1, 1, 2)

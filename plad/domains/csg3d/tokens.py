@@ -11,7 +11,7 @@ index units, its center (x, y, z) and then its full extents (dx, dy, dz).
 Vocabulary (36 domain tokens): ``cuboid``,
 ``ellipsoid``, ``union``, ``inter``, ``diff``, then ``1`` .. ``31``. The
 paper's ``start`` token is the model's own input-only BOS token
-(:class:`plad.model.ModelConfig.bos`), which every domain gets; it is never
+(:class:`plad.model.network.ModelConfig.bos`), which every domain gets; it is never
 predicted, so it is not a domain token. There is no end token: a program is
 complete when no argument is still open, which the stack machine expresses
 directly (start stack ``[shape]``; an operator pops ``shape`` and pushes
@@ -28,7 +28,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import lru_cache
 
-from plad.grammar import ProgramError, Token, TokenTable
+from plad.domains.grammar import ProgramError, Token, TokenTable
 
 RES = 32
 MAX_LEN = 100

@@ -4,7 +4,7 @@ Modules: :mod:`.tokens` (the discretized token language), :mod:`.sampler`
 (synthetic programs), :mod:`.export` (mesh and PNG). Token programs are
 turned into statements of the full hierarchical language and run by its
 executor and voxelizer, which live with the PartNet dataset
-(:mod:`plad.datasets.partnet`) because they define its shapes; the real
+(:mod:`plad.data.datasets.partnet`) because they define its shapes; the real
 target shapes are those.
 
 Executed shapes are bool (B, 32, 32, 32) indexed [x, y, z] on the grid of
@@ -24,29 +24,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.data import TargetSource
-from plad.datasets.partnet.execute import ExecutionError, execute_program
-from plad.datasets.partnet.lang import Block, Program
-from plad.datasets.partnet.voxels import RES, voxelize_batch
+from plad.data.datasets.partnet.execute import ExecutionError
+from plad.data.datasets.partnet.voxels import RES, voxelize_batch
+from plad.data.files import TargetSource
 from plad.domains.base import Domain
-from plad.domains.shapeassembly.tokens import format_program, parse, to_statements, token_table
-from plad.grammar import TokenTable
+from plad.domains.grammar import TokenTable
+from plad.domains.shapeassembly.cuboids import token_cuboids
+from plad.domains.shapeassembly.tokens import format_program, parse, token_table
 from plad.metrics import IOU, Metric
-
-
-def _copy_name(parent: str, index: int | None) -> str:
-    """PLAD's names for reflect / translate copies (never collide with cube0..cube9)."""
-    return f"{parent}_ref" if index is None else f"{parent}_trans_{index}"
-
-
-def token_cuboids(ids: Sequence[int]) -> np.ndarray:
-    """Cuboids (n, 15) float32 of a valid token program (copies included), in the bbox frame.
-
-    Raises :class:`~plad.datasets.partnet.execute.ExecutionError` if a
-    frame becomes singular.
-    """
-    program = Program({"Program_0": Block("Program_0", to_statements(ids))}, "Program_0")
-    return execute_program(program, copy_names=_copy_name)
 
 
 class ShapeAssembly(Domain):
@@ -143,7 +128,7 @@ class ShapeAssembly(Domain):
     @property
     def targets(self) -> TargetSource:
         """The PartNet shapes, the programs this language was discretized from, voxelized at 32^3."""
-        from plad.datasets.partnet.dataset import TARGETS
+        from plad.data.datasets.partnet.dataset import TARGETS
 
         return TARGETS
 
@@ -160,8 +145,8 @@ class ShapeAssembly(Domain):
         a mesh of the cuboids, ``.png`` three orthographic views. Returns a
         one-line summary.
         """
-        from plad.datasets.partnet.execute import run_text
-        from plad.datasets.partnet.voxels import voxelize
+        from plad.data.datasets.partnet.execute import run_text
+        from plad.data.datasets.partnet.voxels import voxelize
 
         if "Assembly" in text or "Cuboid(" in text:
             cuboids = run_text(text)

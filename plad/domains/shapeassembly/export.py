@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plad.datasets.partnet.voxels import corners
-from plad.pictures import VIEWS as _VIEWS  # the view axes of every 3D picture
+from plad.data.datasets.partnet.voxels import corners
+from plad.data.pictures import VIEWS as _VIEWS  # the view axes of every 3D picture
 
 # triangles of a cuboid over the corner order of voxels.corners (index = 4 sx + 2 sy + sz,
 # with s = 0 for -, 1 for +), outward facing (counter-clockwise seen from outside)
@@ -25,7 +25,7 @@ def mesh_arrays(cuboids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def save_mesh(cuboids: np.ndarray, path: str | Path) -> None:
     """Write the cuboids as one triangle mesh (.ply or .obj) with open3d."""
-    from plad.mesh import write_mesh
+    from plad.data.mesh import write_mesh
 
     write_mesh(*mesh_arrays(cuboids), path)
 

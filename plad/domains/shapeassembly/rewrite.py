@@ -1,4 +1,4 @@
-"""ShapeAssembly's rewriting moves (:class:`plad.rewrite.space.RewriteSpace`).
+"""ShapeAssembly's rewriting moves (:class:`plad.domains.space.RewriteSpace`).
 
 What the discretized grammar allows (``START h (Cuboid l h w MOVES [SYM])+ END``):
 
@@ -15,7 +15,7 @@ What the discretized grammar allows (``START h (Cuboid l h w MOVES [SYM])+ END``
   language has no difference): for each of the largest missed components, a
   part whose dimensions are those of a box grown inside it (three boxes from
   three seeds: the deepest voxel, then the deepest ones the earlier boxes
-  leave uncovered) (:func:`plad.rewrite.boxes.residual_boxes`),
+  leave uncovered) (:func:`plad.domains.boxes.residual_boxes`),
   attached by one ``Attach`` to the bbox or to a declared cuboid. For every
   (cuboid, face) the in-face points that bring the part's center closest to
   the box's center are found in closed form over the 9 x 9 x 9 x 9 grid (a
@@ -33,10 +33,10 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from plad.datasets.partnet.execute import BlockState, ExecutionError
+from plad.data.datasets.partnet.execute import BlockState, ExecutionError
+from plad.domains.boxes import residual_boxes
 from plad.domains.shapeassembly.tokens import FACE_TOKENS, FPOS, MAX_CUBOIDS, RES, attach_points, to_statements
-from plad.rewrite.boxes import residual_boxes
-from plad.rewrite.space import Candidates, RewriteSpace, Slot
+from plad.domains.space import Candidates, RewriteSpace, Slot
 
 LOCAL_STEPS = (-2, -1, 1, 2)
 WIDE_STEPS = (-8, -4, -2, -1, 1, 2, 4, 8)

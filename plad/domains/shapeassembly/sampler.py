@@ -36,11 +36,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from plad.datasets.partnet.execute import ExecutionError
-from plad.domains.shapeassembly import token_cuboids
+from plad.data.datasets.partnet.execute import ExecutionError
+from plad.domains.grammar import ProgramError
+from plad.domains.shapeassembly.cuboids import token_cuboids
 from plad.domains.shapeassembly.tokens import MAX_LEN, RES, token_table
 from plad.domains.synthetic import stratified_rejection_sample
-from plad.grammar import ProgramError
 
 MIN_PARTS, MAX_PARTS = 2, 8
 MIN_UNIQUE_VOXELS = 8

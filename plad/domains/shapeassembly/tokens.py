@@ -18,7 +18,7 @@ and a program has at most 100 tokens, END included.
 The text form is the tokens separated by whitespace, e.g.
 ``START 20 Cuboid 30 2 30 Attach bbox top fpos_5_5 fpos_5_5 END``.
 
-Grammar as data (:mod:`plad.grammar`): the stack symbols carry the number c
+Grammar as data (:mod:`plad.domains.grammar`): the stack symbols carry the number c
 of cuboids declared so far, so that a reference ``cube_j`` is only allowed
 when cuboid j exists and is not the one being moved, and a tenth Cuboid is
 the last. Symbols: ``P{c}`` next part or END; ``M{c}`` the moves of cuboid c
@@ -32,8 +32,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import lru_cache
 
-from plad.datasets.partnet.lang import AXES, FACES, Stmt
-from plad.grammar import ProgramError, Token, TokenTable
+from plad.data.datasets.partnet.lang import AXES, FACES, Stmt
+from plad.domains.grammar import ProgramError, Token, TokenTable
 
 RES = 32
 MAX_CUBOIDS = 10

@@ -9,8 +9,8 @@ import torch
 
 from plad.domains import domain_names, get_domain
 from plad.domains.base import pad_programs
+from plad.learn.pbest import PBest
 from plad.metrics import IOU
-from plad.pbest import PBest
 
 
 def _same_execution(domain, programs: list[list[int]], chunk: int = 2000) -> None:

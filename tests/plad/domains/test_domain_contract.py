@@ -5,7 +5,7 @@ import torch
 
 from plad.domains import domain_names, get_domain
 from plad.domains.base import pad_programs
-from plad.grammar import ProgramError
+from plad.domains.grammar import ProgramError
 from plad.metrics import Metric
 
 DOMAINS = domain_names()

@@ -6,14 +6,14 @@ import sys
 
 import numpy as np
 
-from plad.cli import main
+from plad.serve.cli import main
 from tests.reference.csg2d_render import render
 
 PLAD = shutil.which("plad")
 
 
 def run(*args):
-    cmd = [PLAD, *args] if PLAD else [sys.executable, "-m", "plad.cli", *args]
+    cmd = [PLAD, *args] if PLAD else [sys.executable, "-m", "plad.serve.cli", *args]
     return subprocess.run(cmd, capture_output=True, text=True,
                           env={**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
 

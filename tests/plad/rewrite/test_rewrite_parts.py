@@ -4,13 +4,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from plad.domains.bits import packed_iou, popcount
+from plad.domains.boxes import grow_box, prefix_sums, residual_boxes
 from plad.domains.csg2d.executor import pack as pack2d
 from plad.domains.csg3d.executor import pack as pack3d
+from plad.domains.space import Candidates
 from plad.metrics import iou
-from plad.rewrite.bits import packed_iou, popcount
-from plad.rewrite.boxes import grow_box, prefix_sums, residual_boxes
 from plad.rewrite.evaluate import first_per_group, top_per_group
-from plad.rewrite.space import Candidates
 
 
 def test_popcount_of_int64_words():

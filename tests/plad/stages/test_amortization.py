@@ -58,7 +58,7 @@ def _indices(path: Path) -> list[int]:
 def test_a_limit_takes_shapes_evenly_spaced_over_the_split(root):
     """PartNet's splits are ordered by category: a limit must not mean the first shapes (chairs only). The
     programs file names each shape's index in the split, and its value is the one the full split gives."""
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
     from plad.stages.search_only import SearchOnlyConfig, search_only
 
     layout = Layout(root)
@@ -131,8 +131,8 @@ def test_the_report_builds_with_and_without_the_rows_beyond_the_paper(tmp_path):
 
 
 def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
-    from plad.cli import main
-    from plad.data import load_prepared
+    from plad.data.files import load_prepared
+    from plad.serve.cli import main
 
     layout = Layout(root)
     shapes = load_prepared(layout.prepared("csg2d"), "test")[:3]

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from plad.config import ConfigError, load_params, section
-from plad.data import load_prepared
-from plad.datasets.cad import load_cad
+from plad.data.datasets.cad import load_cad
+from plad.data.files import load_prepared
 from plad.layout import Layout
+from plad.learn.pretrain import PretrainConfig
 from plad.stages.prepare import PrepareConfig, main, prepare
-from plad.stages.pretrain import PretrainConfig
 from tests.conftest import REPO_ROOT
 
 REPO = REPO_ROOT

@@ -6,10 +6,10 @@ import json
 import pytest
 
 from plad.layout import Layout
-from plad.methods import MethodConfig
-from plad.rounds import RoundsConfig
+from plad.learn.methods import MethodConfig
+from plad.learn.rounds import RoundsConfig
+from plad.learn.train import TrainConfig
 from plad.stages.finetune import FinetuneStageConfig, finetune_stage
-from plad.train import TrainConfig
 from tests.tiny import csg2d_inputs, tiny_checkpoint
 
 pytestmark = pytest.mark.unit

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from plad.config import ConfigError
-from plad.data import DataError, load_prepared
-from plad.datasets.cad import load_cad
+from plad.data.datasets.cad import load_cad
+from plad.data.files import DataError, load_prepared
 from plad.layout import Layout
 from plad.stages.prepare import PrepareConfig, main, prepare, prepare_sources, target_groups
 

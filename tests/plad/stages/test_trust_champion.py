@@ -4,10 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from plad.checkpoint import save_checkpoint
 from plad.domains import get_domain
 from plad.layout import Layout
-from plad.model import ModelConfig, PLADNet
+from plad.model.checkpoint import save_checkpoint
+from plad.model.network import ModelConfig, PLADNet
 
 NAME = "plad-csg2d"
 
@@ -77,7 +77,7 @@ def _report(pipeline, *extra):
 
 
 def test_from_mlflow_reads_the_best_validation_not_the_last_step(pipeline):
-    from plad.report import from_mlflow
+    from plad.eval.report import from_mlflow
 
     ws = {r.key: r for r in from_mlflow("csg2d", ["sp", "ws"])}["ws"]
     assert ws.val_best == pytest.approx(4.185)
@@ -121,8 +121,8 @@ def test_champion_moves_only_to_a_better_best_validation(pipeline, capsys):
 
 
 def test_a_missing_experiment_is_a_one_line_error(tmp_path, monkeypatch, capsys):
-    from plad.data import DataError
-    from plad.report import from_mlflow
+    from plad.data.files import DataError
+    from plad.eval.report import from_mlflow
     from plad.stages.report import main
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")

@@ -224,7 +224,7 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys, ti
     client.set_model_version_tag(name, version, "plad.test", "0.9")
     row = next(r for r in tracking.registered_models() if r["name"] == name)
     assert row["aliases"] == ["champion"] and row["method"] == "lest_st" and row["test"] == "0.9"
-    from plad.cli import main as plad_main
+    from plad.serve.cli import main as plad_main
     assert plad_main(["models"]) == 0
     listed = capsys.readouterr().out
     assert name in listed and "champion" in listed and "lest_st" in listed
@@ -265,7 +265,7 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys, ti
 
 def test_a_stage_records_the_params_file_it_read(store, client, tmp_path, monkeypatch, tiny_checkpoint):
     """``--params`` elsewhere than ./params.yaml: the run's tags come from that file (and its profile's)."""
-    from plad.data import write_prepared
+    from plad.data.files import write_prepared
     from plad.layout import Layout
     from plad.stages import evaluate
 

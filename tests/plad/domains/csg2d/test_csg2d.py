@@ -9,7 +9,7 @@ from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.domains.csg2d.executor import pack, unpack
 from plad.domains.csg2d.tokens import token_table
-from plad.grammar import ProgramError
+from plad.domains.grammar import ProgramError
 from tests.conftest import require_shared
 from tests.reference.csg2d_render import render
 

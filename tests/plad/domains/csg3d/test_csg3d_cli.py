@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from plad.cli import main
+from plad.data.pictures import depth_views
 from plad.domains import get_domain
 from plad.domains.csg3d.export import mesh_arrays, to_scad
-from plad.pictures import depth_views
+from plad.serve.cli import main
 from tests.reference.csg3d_render import render
 
 DOMAIN = get_domain("csg3d")

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from plad.cli import main
-from plad.datasets.partnet.voxels import voxelize_batch
+from plad.data.datasets.partnet.voxels import voxelize_batch
 from plad.domains import get_domain
+from plad.domains.grammar import ProgramError
 from plad.domains.shapeassembly import token_cuboids
-from plad.grammar import ProgramError
+from plad.serve.cli import main
 from tests.conftest import require_shared
 
 DOMAIN = get_domain("shapeassembly")
@@ -73,9 +73,9 @@ def test_reflected_leg_voxels_exact():
 
 
 def test_executor_equals_the_full_language_on_the_same_statements():
-    from plad.datasets.partnet.execute import execute_program
-    from plad.datasets.partnet.lang import Block, Program
-    from plad.datasets.partnet.voxels import voxelize
+    from plad.data.datasets.partnet.execute import execute_program
+    from plad.data.datasets.partnet.lang import Block, Program
+    from plad.data.datasets.partnet.voxels import voxelize
     from plad.domains.shapeassembly.tokens import to_statements
 
     for ids in DOMAIN.sample(50, np.random.default_rng(5)):
@@ -144,7 +144,7 @@ def test_inside_sampler_keeps_every_part_in_the_bbox():
 
 
 def test_dataset_build_end_to_end(tmp_path, fixtures_dir):
-    from plad.datasets.partnet.dataset import build_partnet_dataset, load_split, unpack
+    from plad.data.datasets.partnet.dataset import build_partnet_dataset, load_split, unpack
 
     tar = require_shared("datasets/shapeassembly_partnet/partnet_programs.tar.gz")
     report = build_partnet_dataset(tar, tmp_path / "partnet_voxels.npz", limit=3)
@@ -171,7 +171,7 @@ def test_dataset_build_reports_failures(tmp_path):
     import io
     import tarfile
 
-    from plad.datasets.partnet.dataset import build_partnet_dataset
+    from plad.data.datasets.partnet.dataset import build_partnet_dataset
 
     good = "Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n}\n"
     files = {"programs/chair/1.txt": good, "programs/chair/2.txt": good.replace("cube0 = Cuboid(1, 1, 1",
@@ -194,7 +194,7 @@ def test_dataset_build_reports_failures(tmp_path):
 
 
 def test_target_data_missing_is_a_clear_data_error(tmp_path):
-    from plad.data import DataError
+    from plad.data.files import DataError
 
     with pytest.raises(DataError, match="built by the prepare stage"):
         DOMAIN.target_data("val", tmp_path)

@@ -1,0 +1,208 @@
+"""Generic, resumable MLE training of p(z|x) with early stopping.
+
+Used by supervised pretraining and, inside every round, by the PLAD methods.
+An "epoch" is a fixed number of optimizer steps (so that a checkpoint is
+never far away); after each, the model is validated, the learning-rate
+schedule steps, the best weights are kept, and ``last.pt`` is written
+atomically with everything needed to continue: killing the process and
+running the same command again resumes after the last finished epoch. The
+loop itself (stopping, budget, best, history) is :class:`plad.learn.loop.Loop`.
+
+Under torchrun (:mod:`plad.learn.distributed`) every rank runs :func:`fit` on its
+own batches with the gradients averaged (DDP); rank 0's validation metrics
+drive the schedule and the loop, and only rank 0 writes ``last.pt`` and
+``best.pt``. Each rank's random stream (dropout) is re-seeded at every
+epoch from (seed, epoch, rank), so a resumed run needs no per-rank state.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import random
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from plad.layout import BEST, LAST
+from plad.learn import distributed as dist
+from plad.learn.loop import Limits, Loop, LoopResult, Objective, Unit, upgrade_state
+from plad.model.checkpoint import read_checkpoint, save_checkpoint
+from plad.model.network import PLADNet
+
+log = logging.getLogger(__name__)
+
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]   # shapes (N, *s), programs (N, L), lengths (N,)
+
+#: pretraining selects on the validation loss
+VAL_LOSS = Objective("val_loss", higher_is_better=False)
+
+
+@dataclass
+class TrainConfig:
+    """One epoch-based MLE training loop. The only set of defaults: profiles set every key.
+
+    There is no budget here: a run has one budget knob (``pretrain.max_minutes``,
+    ``finetune.max_minutes``), and a PLAD round trains within what is left of it.
+    """
+
+    batch_size: int = 128
+    lr: float = 1e-3
+    steps_per_epoch: int = 500
+    max_epochs: int = 100
+    #: epochs without an improvement of at least ``min_delta`` before stopping
+    patience: int = 5
+    min_delta: float = 1e-3
+    #: the learning rate is multiplied by ``lr_factor`` after ``lr_patience`` epochs without improvement
+    lr_patience: int = 2
+    lr_factor: float = 0.5
+    min_lr: float = 1e-5
+    grad_clip: float = 1.0
+    #: batches drawn together and grouped by program length (:mod:`plad.data.batching`); 1: plain random batches
+    bucket_pool: int = 1
+    #: linear learning-rate warm-up from lr / warmup_steps to lr over the first steps (0: none); the
+    #: plateau schedule starts once it is over. Early large steps let the decoder settle on the programs'
+    #: statistics before the encoder's signal arrives (issue 14)
+    warmup_steps: int = 0
+
+
+def _rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    # a checkpoint holds plain data only (plad.model.checkpoint.plain): NumPy's key array comes back as a tensor
+    name, keys, *rest = state["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), *rest))
+    random.setstate(state["python"])
+
+
+class Stages(Protocol):
+    """A training schedule in stages that :func:`fit` consults and checkpoints
+    (:class:`plad.learn.curriculum.Curriculum`).
+
+    Until ``final``, the loop's patience does not run and the plateau schedule does not reduce the learning
+    rate. ``end_epoch(steps, metrics)`` runs on every rank with rank 0's metrics and returns extra history
+    columns; the state is part of ``last.pt``.
+    """
+
+    @property
+    def final(self) -> bool: ...
+
+    def end_epoch(self, steps: int, metrics: dict[str, float]) -> dict[str, float]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class _LastCheckpoint:
+    """The loop's store for :func:`fit`: weights, optimizer, schedule, RNGs and loop state in one atomic ``last.pt``."""
+
+    def __init__(self, path: Path, model: PLADNet, opt, sched, domain: str, token_names: list[str],
+                 fingerprint: dict | None, stages: Stages | None = None):
+        self.path, self.model, self.opt, self.sched = path, model, opt, sched
+        self.domain, self.token_names, self.fingerprint = domain, token_names, fingerprint
+        self.stages = stages
+
+    def load(self) -> dict[str, Any] | None:
+        payload = read_checkpoint(self.path) if self.path.exists() else None
+        if payload is None:
+            return None
+        if payload.get("fingerprint") != self.fingerprint:
+            log.warning("%s was written with other settings; starting over", self.path)
+            return None
+        self.model.load_state_dict(payload["state_dict"])
+        self.opt.load_state_dict(payload["optimizer"])
+        self.sched.load_state_dict(payload["scheduler"])
+        _set_rng_state(payload["rng"])
+        if self.stages is not None and payload.get("stages") is not None:
+            self.stages.load_state_dict(payload["stages"])
+        # "train_state": a last.pt written before plad.learn.loop (same meaning, other key names)
+        return payload["loop"] if "loop" in payload else upgrade_state(payload["train_state"], "epoch")
+
+    def commit(self, state: dict[str, Any]) -> None:
+        save_checkpoint(self.path, self.model, self.domain, self.token_names, {
+            "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(), "loop": state,
+            "rng": _rng_state(), "fingerprint": self.fingerprint,
+            "stages": self.stages.state_dict() if self.stages is not None else None})
+
+
+def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
+        validate: Callable[[PLADNet], dict[str, float]], cfg: TrainConfig, out_dir: str | Path, *,
+        domain: str, token_names: list[str], objective: Objective = VAL_LOSS,
+        budget_seconds: float = math.inf,
+        on_unit: Callable[[int, dict[str, Any]], None] | None = None,
+        loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None,
+        desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None) -> LoopResult:
+    """Train until early stopping, ``max_epochs`` or the time budget; resume from ``out_dir/last.pt``.
+
+    ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
+    programs, lengths) on the model's device; derive them from the epoch
+    number so that a resumed run sees the same data (in a distributed run:
+    this rank's part, see :mod:`plad.learn.distributed`). ``validate(model)``
+    returns metrics including ``objective.name``, the value selected on; it
+    runs on every rank (it may split its work across them). The
+    best weights are written to ``out_dir/best.pt`` and loaded back into
+    ``model`` at the end. ``budget_seconds`` counts training time across
+    resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
+    validation metrics, ``lr``). ``fingerprint`` identifies the run's settings:
+    a ``last.pt`` written under another fingerprint is not resumed. ``stages``
+    (e.g. a curriculum, which ``batches`` reads) is told each epoch's metrics
+    and saved with ``last.pt``; see :class:`Stages`.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+        opt, mode="max" if objective.higher_is_better else "min", factor=cfg.lr_factor, patience=cfg.lr_patience,
+        threshold=cfg.min_delta, threshold_mode="abs", min_lr=cfg.min_lr)
+    step_loss = dist.data_parallel(model, loss_fn or (lambda m, b: m.loss(*b)))
+    seed = torch.initial_seed()   # the caller's seed, before a resume restores the RNG state
+
+    def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
+        model.train()
+        if dist.world() > 1:   # this rank's dropout stream, fixed by (seed, epoch, rank): nothing per rank to save
+            torch.manual_seed(dist.rank_seed(seed * 1_000_003 + unit))
+        total, total_acc = 0.0, 0.0
+        it = batches(unit - 1)   # batch streams are numbered from 0
+        for i in range(cfg.steps_per_epoch):
+            step = (unit - 1) * cfg.steps_per_epoch + i
+            if step < cfg.warmup_steps:   # linear warm-up; the plateau schedule takes over after it
+                for group in opt.param_groups:
+                    group["lr"] = cfg.lr * (step + 1) / cfg.warmup_steps
+            batch = next(it)
+            loss, acc = step_loss(batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            total += float(loss.detach())
+            total_acc += float(acc)
+        metrics = {"train_loss": dist.mean(total / cfg.steps_per_epoch),
+                   "train_acc": dist.mean(total_acc / cfg.steps_per_epoch)}
+        metrics.update(validate(model))
+        metrics = dist.broadcast(metrics)   # rank 0's values drive the schedule on every rank
+        value = metrics[objective.name]
+        final = stages is None or stages.final   # the stage this epoch trained in
+        if stages is not None:
+            metrics.update(stages.end_epoch(cfg.steps_per_epoch, metrics))
+        if final and unit * cfg.steps_per_epoch >= cfg.warmup_steps:
+            sched.step(value)
+        return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]}, patience=1 if final else 0)
+
+    def keep_best(unit: int, value: float) -> None:
+        if dist.is_main():
+            save_checkpoint(out / BEST, model, domain, token_names, {"unit": unit, "val": value})
+
+    def restore_best() -> None:
+        model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
+
+    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint, stages)
+    loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, budget_seconds), store)
+    return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit, progress=desc)

@@ -1,0 +1,165 @@
+"""Model checkpoints that rebuild the network from the file alone.
+
+A checkpoint holds the model config, the domain name and its token names
+(checked on load, so a checkpoint never silently decodes with another
+vocabulary), the weights, and optionally training state for resuming.
+Writes are atomic.
+
+A checkpoint holds only tensors and plain data (str, int, float, bool, None,
+and lists, tuples and dicts of them): it is read with
+``torch.load(weights_only=True)``, so a file from ``--model``, the MLflow
+registry or anywhere else cannot run code when it is loaded. A file holding
+anything else is refused with one line (:class:`CheckpointError`). Files
+written by versions that pickled other objects (NumPy's RNG state) are
+converted once, from a trusted source only, by::
+
+    python -m plad.model.checkpoint convert OLD.pt NEW.pt
+"""
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from plad.domains import get_domain
+from plad.errors import RunFailure
+from plad.fsutil import atomic_write
+from plad.model.network import ModelConfig, PLADNet
+
+FORMAT = "plad-checkpoint-1"
+
+
+class CheckpointError(RunFailure):
+    """A checkpoint cannot be used; the message is one line naming the file (exit status 1)."""
+
+
+#: how :func:`read_checkpoint` tells the user to convert a checkpoint of an older version
+CONVERT_HINT = "python -m plad.model.checkpoint convert OLD NEW"
+_PLAIN = (str, int, float, bool, type(None), torch.Tensor, torch.Size)
+
+
+def plain(value: Any, where: str = "checkpoint") -> Any:
+    """``value`` as tensors and plain data only; NumPy arrays and scalars become tensors and numbers.
+
+    Raises ``TypeError`` naming the key for anything else, so a checkpoint that
+    ``torch.load(weights_only=True)`` could not read is never written.
+    """
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, np.generic):   # before the plain types: np.float64 is a float subclass
+        return value.item()
+    if isinstance(value, _PLAIN):
+        return value
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(value))
+    if isinstance(value, dict):
+        return {k: plain(v, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(plain(v, f"{where}[{i}]") for i, v in enumerate(value))
+    raise TypeError(f"{where}: a {type(value).__name__} is not plain data (tensors, numbers, strings, "
+                    "lists, dicts)")
+
+
+def save_checkpoint(path: str | os.PathLike, model: PLADNet, domain: str, token_names: list[str],
+                    extra: dict[str, Any] | None = None) -> Path:
+    payload = {
+        "format": FORMAT,
+        "domain": domain,
+        "tokens": list(token_names),
+        "config": model.cfg.to_dict(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        **plain(extra or {}, "extra"),
+    }
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return atomic_write(path, lambda fh: fh.write(buf.getvalue()))
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"{path}: no such checkpoint")
+    try:
+        # weights_only: only tensors and plain containers are unpickled; nothing in the file can run
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise CheckpointError(f"{path}: holds objects other than tensors and plain data; refused (a checkpoint "
+                              f"of an older PLAD version from a source you trust: `{CONVERT_HINT}`)") from None
+    except Exception as err:  # torch raises many types for corrupt files
+        raise CheckpointError(f"{path}: not a readable checkpoint ({err.__class__.__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a PLAD checkpoint (expected format {FORMAT})")
+    return payload
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu",
+               expect_domain: str | None = None) -> tuple[PLADNet, str]:
+    """(model in eval mode on ``device``, domain name) from a checkpoint file."""
+    payload = read_checkpoint(path)
+    domain = payload["domain"]
+    if expect_domain is not None and domain != expect_domain:
+        raise CheckpointError(f"{path}: a {domain} model, not a {expect_domain} one")
+    try:
+        names = get_domain(domain).tokens.names
+    except KeyError:
+        raise CheckpointError(f"{path}: unknown domain {domain!r}") from None
+    if names != payload["tokens"]:
+        raise CheckpointError(f"{path}: its {domain} vocabulary differs from this version's token table")
+    model = PLADNet(ModelConfig(**payload["config"]))
+    model.load_state_dict(payload["state_dict"])
+    return model.to(device).eval(), domain
+
+
+def convert(old: str | os.PathLike, new: str | os.PathLike) -> Path:
+    """Rewrite a checkpoint of an older version as tensors and plain data (:func:`plain`).
+
+    This unpickles ``old`` fully (``weights_only=False``): run it only on files
+    you trust, once; the result loads with ``weights_only=True``.
+    """
+    old = Path(old)
+    if not old.is_file():
+        raise CheckpointError(f"{old}: no such checkpoint")
+    try:
+        payload = torch.load(old, map_location="cpu", weights_only=False)
+    except Exception as err:  # torch raises many types for corrupt files
+        raise CheckpointError(f"{old}: not a readable checkpoint ({err.__class__.__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") not in (FORMAT, None):
+        raise CheckpointError(f"{old}: not a PLAD checkpoint")
+    try:
+        payload = plain(payload)
+    except TypeError as err:
+        raise CheckpointError(f"{old}: cannot convert: {err}") from None
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return atomic_write(new, lambda fh: fh.write(buf.getvalue()))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m plad.model.checkpoint convert OLD NEW``: the one-off conversion of an older checkpoint."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m plad.model.checkpoint",
+                                     description="Convert a checkpoint of an older PLAD version (trusted files "
+                                                 "only) to tensors and plain data.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("convert", help="rewrite OLD (fully unpickled: trusted files only) as NEW")
+    p.add_argument("old")
+    p.add_argument("new")
+    args = parser.parse_args(argv)
+    try:
+        out = convert(args.old, args.new)
+    except CheckpointError as err:
+        print(f"plad.model.checkpoint: error: {err}", file=sys.stderr)
+        return 1
+    print(f"converted {args.old} -> {out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,161 @@
+"""Inference on the user's own shapes: a model, shapes in, programs and files out (``plad infer``).
+
+The model is a checkpoint file or an MLflow model URI (``models:/plad-<domain>@champion``,
+``models:/plad-<domain>/3``, ``runs:/<id>/model``); without one, the registered
+champion of a configured MLflow store, else the model shipped with the package
+(:mod:`plad.serve.resolve`). Every run writes into a folder of its own,
+``<out>/<UTC time>-<process id>/`` (:func:`new_run_dir`; created with
+``exist_ok=False``), so runs into the same ``--out``, at once or one after
+another, never overwrite each other's files or rows. For every input shape
+the run's folder gets:
+
+* ``<stem>.txt``: the program text (the domain's text form);
+* ``<stem>.png``: input and reconstruction side by side (3D: three depth views each);
+* ``<stem>.input.npy`` / ``<stem>.recon.npy``: the target shape as the model saw it
+  (fitted to the canvas or voxelized) and the program's execution, so that
+  ``plad score DOMAIN --pred <stem>.recon.npy --target <stem>.input.npy``
+  reproduces the metric;
+* the domain's exports (2D CSG: ``.svg``; 3D CSG: ``.ply`` and ``.scad``;
+  ShapeAssembly: ``.ply``);
+
+and the run's ``results.csv`` has a row per input (file, status, metric,
+program, notes or error). A bad input is reported in its row and does not stop
+the others.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from plad.data.inputs import Item
+from plad.data.pictures import save_comparison
+from plad.domains.base import Domain
+from plad.fsutil import atomic_write_text
+from plad.model.checkpoint import CheckpointError, load_model
+from plad.model.decode import infer_programs
+from plad.model.network import PLADNet
+from plad.serve.resolve import ModelError, resolve
+
+
+def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple[PLADNet, str]:
+    """(model in eval mode, where it came from), chosen by :func:`plad.serve.resolve.resolve`: ``model``, else the
+    configured store's champion, else the shipped model. Raises :class:`ModelError` with a one-line reason."""
+    choice = resolve(domain, model)
+    try:
+        net = load_model(choice.path, device, expect_domain=domain)[0]
+    except CheckpointError as err:   # name the URI, not the temporary download
+        raise ModelError(f"{choice.ref}: {str(err).removeprefix(f'{choice.path}: ')}"
+                         if choice.uri else str(err)) from None
+    return net, choice.ref + "".join(f" ({note})" for note in choice.notes)
+
+
+def new_run_dir(out: str | Path) -> Path:
+    """A new folder for one run under ``out``: ``<UTC time>-<process id>`` (``-2``, ... if taken).
+
+    ``mkdir(exist_ok=False)`` is atomic: two runs never get the same folder.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}-{os.getpid()}"
+    for k in range(1, 1000):
+        path = out / (stem if k == 1 else f"{stem}-{k}")
+        try:
+            path.mkdir(exist_ok=False)
+            return path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{out}: no free run folder named {stem}-N")
+
+
+@dataclass
+class Result:
+    item: Item
+    program: str | None = None
+    value: float | None = None
+    outputs: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.item.error is None
+
+
+def _write_outputs(domain: Domain, item: Item, ids: list[int], recon: np.ndarray, value: float,
+                   out: Path) -> tuple[str, ...]:
+    stem = out / item.name
+    program = domain.format(ids)
+    files = [stem.with_suffix(".txt"), stem.with_name(f"{item.name}.png"),
+             stem.with_name(f"{item.name}.input.npy"), stem.with_name(f"{item.name}.recon.npy")]
+    atomic_write_text(files[0], program + "\n")
+    metric = domain.metric
+    save_comparison([("input", item.shape), (f"program ({metric.name} {value:.3f})", recon)], files[1],
+                    title=_wrap(program))
+    np.save(files[2], item.shape)
+    np.save(files[3], recon)
+    files += domain.export_files(ids, stem)
+    return tuple(str(f) for f in files)
+
+
+def _wrap(text: str, width: int = 90) -> str:
+    return "\n".join(text[i:i + width] for i in range(0, len(text), width))
+
+
+def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
+                batch_size: int = 16, progress: bool = True, refine=None) -> list[Result]:
+    """Best-of-beam programs for the good items, their output files, and ``results.csv``.
+
+    ``refine`` (a :class:`plad.rewrite.RefineConfig`, or None): rewrite each shape's best-of-beam program
+    with the rewriters before writing it (never worse; ``plad infer --refine``).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = next(model.parameters()).device
+    results = {id(it): Result(it) for it in items}
+    good = [it for it in items if it.error is None]
+    with tqdm(total=len(good), desc="infer", unit="shape", disable=not progress or None) as bar:
+        for start in range(0, len(good), batch_size):
+            chunk = good[start:start + batch_size]
+            targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
+            inferred = infer_programs(model, domain, targets, beam)
+            programs, values, recons = inferred.programs, inferred.values.cpu(), inferred.shapes.cpu()
+            if refine is not None:
+                from plad.rewrite import refine as rewrite
+                from plad.rewrite.evaluate import Scorer
+
+                refined = rewrite(domain, programs, targets.cpu(), refine)
+                programs, values = refined.programs, refined.values
+                recons = Scorer(domain, targets.cpu()).outputs(programs)
+            for j, it in enumerate(chunk):
+                value = float(values[j])
+                recon = recons[j].numpy()
+                r = results[id(it)]
+                r.program, r.value = domain.format(programs[j]), value
+                if not recon.any():
+                    it.notes.append("the inferred program executes to an empty shape")
+                try:
+                    r.outputs = _write_outputs(domain, it, programs[j], recon, value, out)
+                except OSError as err:
+                    it.error = f"could not write its outputs ({err})"
+            bar.update(len(chunk))
+    ordered = [results[id(it)] for it in items]
+    write_csv(ordered, domain, out / "results.csv")
+    return ordered
+
+
+def write_csv(results: list[Result], domain: Domain, path: Path) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["file", "name", "status", domain.metric.name, "program", "notes"])
+    for r in results:
+        it = r.item
+        w.writerow([str(it.source), it.name, "ok" if r.ok else "error",
+                    "" if r.value is None else f"{r.value:.6f}", r.program or "",
+                    it.error if it.error else "; ".join(it.notes)])
+    atomic_write_text(path, buf.getvalue())
