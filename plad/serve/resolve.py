@@ -73,9 +73,12 @@ class Choice:
 
 def _download(uri: str) -> Path:
     from plad.tracking.registry import download_checkpoint
+    from plad.tracking.store import StoreError
 
     try:
         return download_checkpoint(uri)
+    except StoreError as err:    # the store cannot be opened (one line naming it and what to do)
+        raise ModelError(str(err)) from None
     except LookupError as err:   # not in the store
         raise ModelError(str(err)) from None
     except ValueError as err:    # a logged model without a checkpoint

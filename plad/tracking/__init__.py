@@ -4,7 +4,8 @@ The only package that talks to MLflow (``mlflow`` itself is imported lazily,
 so ``import plad.tracking`` stays cheap):
 
 * :mod:`plad.tracking.store`: where the store is (``$MLFLOW_TRACKING_URI`` or
-  ``./mlflow.db``) and the experiment;
+  ``./mlflow.db``), opening it (:func:`open_store`: a new SQLite store created once under a lock,
+  a broken one a one-line :class:`StoreError`) and the experiment;
 * :mod:`plad.tracking.runs`: :class:`StageRun`, one run per stage execution
   (resumable, nested child runs per round), and reading finished runs back;
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
@@ -36,7 +37,7 @@ from plad.tracking.runs import (
     pipeline_tags,
 )
 from plad.tracking.serving import load_checkpoint_pyfunc, load_registered, pip_requirements, pyfunc_class
-from plad.tracking.store import DEFAULT_EXPERIMENT, find_experiment, tracking_uri
+from plad.tracking.store import DEFAULT_EXPERIMENT, StoreError, find_experiment, open_store, tracking_uri
 
 
 def __getattr__(name: str) -> Any:
@@ -47,8 +48,9 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun",
+__all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun", "StoreError",
            "champion_tags", "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri",
-           "latest_finished_run", "load_checkpoint_pyfunc", "load_registered", "metric_history", "pip_requirements",
+           "latest_finished_run", "load_checkpoint_pyfunc", "load_registered", "metric_history", "open_store",
+           "pip_requirements",
            "pipeline_tags",
            "registered_models", "set_champion", "set_version_tags", "tracking_uri"]

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from plad.tracking.store import client, mlflow_module, tracking_uri
+from plad.tracking.store import client, mlflow_module, open_store, tracking_uri
 
 #: the URI schemes of a logged model (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/RUN/model``)
 MODEL_URI_PREFIXES = ("models:/", "runs:/", "mlflow-artifacts:/")
@@ -64,6 +64,7 @@ def download_checkpoint(uri: str) -> Path:
     store does not have the model, ``ValueError`` when the model holds no
     ``.pt`` checkpoint.
     """
+    open_store()
     mlflow = mlflow_module()
     from mlflow.exceptions import MlflowException
 

@@ -30,7 +30,8 @@ from plad.tracking.store import (
     client,
     ensure_experiment,
     mlflow_module,
-    tracking_uri,
+    open_store,
+    store_errors,
 )
 
 RUN_FILE = "mlflow_run.json"
@@ -234,8 +235,14 @@ class StageRun:
 
     # -- context manager --------------------------------------------------------------------
     def __enter__(self) -> StageRun:
+        # a store that cannot be opened or written is one line (plad.tracking.store.StoreError), before
+        # anything is written; so is a store that fails while the run starts (e.g. locked or full)
+        uri = open_store(write=True)
+        with store_errors(uri, "cannot start the run"):
+            return self._start(uri)
+
+    def _start(self, uri: str) -> StageRun:
         mlflow = mlflow_module()
-        uri = tracking_uri()
         mlflow_client = mlflow.MlflowClient()
         experiment_id = self._exp_id = ensure_experiment(mlflow_client, uri, self.experiment)
         tags = self._tags = self.tags

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from plad import __version__
-from plad.tracking.store import mlflow_module
+from plad.tracking.store import mlflow_module, open_store
 
 #: the module that serves the wrapper class by name (see plad/tracking/__init__.py)
 PUBLIC_MODULE = "plad.tracking"
@@ -60,6 +60,7 @@ def log_pyfunc(checkpoint_path: str | os.PathLike, *, registered_name: str | Non
 
 def load_registered(uri: str) -> Any:
     """The pyfunc model at ``uri`` (``models:/name@champion``, ``models:/name/3``, ...)."""
+    open_store()
     return mlflow_module().pyfunc.load_model(uri)
 
 

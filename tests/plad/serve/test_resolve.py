@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -134,8 +135,6 @@ def test_no_model_at_all_is_one_line(tmp_path):
 
 
 def test_a_damaged_shipped_model_is_refused(shipped, tmp_path):
-    import shutil
-
     copy = tmp_path / "shipped"
     shutil.copytree(shipped, copy)
     with open(copy / "csg2d" / "model.pt", "r+b") as fh:
@@ -186,8 +185,6 @@ def test_a_configured_store_with_a_champion_comes_first_and_models_lists_both(sh
 
 
 def test_a_store_without_the_champion_falls_back_to_the_shipped_model(shipped, store, tmp_path, monkeypatch):
-    import shutil
-
     from plad.serve.resolve import ModelError, resolve
     from plad.tracking.store import client
 
@@ -204,6 +201,16 @@ def test_a_store_without_the_champion_falls_back_to_the_shipped_model(shipped, s
     # a SQLite URI whose database is absent configures no store, and the look-up does not create it
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'elsewhere.db'}")
     assert resolve("csg2d").kind == "shipped" and not (tmp_path / "elsewhere.db").exists()
+    # a configured store that cannot be opened: the shipped model, with the store's one-line error as the note
+    broken = tmp_path / "broken" / "mlflow.db"
+    broken.parent.mkdir()
+    broken.write_text("not a database")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{broken}")
+    choice = resolve("csg2d")
+    assert choice.kind == "shipped" and choice.notes[0].startswith(
+        f"no champion in the MLflow store (MLflow store sqlite:///{broken}: {broken} cannot be read as an SQLite "
+        "database (file is not a database); move the file away")
+    assert broken.read_text() == "not a database"
 
 
 def test_the_pyfunc_loader_resolves_like_infer(shipped, monkeypatch):
