@@ -10,6 +10,11 @@ Layout of the folder (this package's directory, or ``$PLAD_SHIPPED_DIR``)::
 evaluation (``plad models ship``); :func:`shipped_model` and :func:`list_shipped` read them
 back. Reading a sidecar needs neither torch nor MLflow (``plad models`` lists the shipped
 models without them); :func:`ship` loads the checkpoint and so imports torch.
+
+Two files make one model, so concurrent use is coordinated by ``<domain>/.ship.lock``
+(:func:`plad.fsutil.file_lock`): :func:`ship` writes the pair under the exclusive lock (two ships
+at once: one after the other, the last one shipped), :meth:`ShippedModel.verify` checks it under
+the shared one, and refuses (one line) a model re-shipped since its sidecar was read.
 """
 from __future__ import annotations
 
@@ -25,6 +30,8 @@ from typing import Any
 SHIPPED_ENV = "PLAD_SHIPPED_DIR"
 CHECKPOINT = "model.pt"
 SIDECAR = "model.json"
+#: the lock file of a domain's folder (never removed; not package data)
+LOCK = ".ship.lock"
 FORMAT = "plad-shipped-1"
 
 
@@ -55,9 +62,18 @@ class ShippedModel:
                 f"{m.get('mean', '?')}) {self.checkpoint}")
 
     def verify(self) -> None:
-        """Raise :class:`ShipError` when the checkpoint is not the file the sidecar describes."""
-        want = self.info.get("checkpoint", {})
-        got = sha256_file(self.checkpoint)
+        """Raise :class:`ShipError` when the checkpoint is not the file the sidecar describes, or when the
+        model was shipped again since this sidecar was read (a ``plad models ship`` at the same time)."""
+        from plad.fsutil import file_lock
+
+        folder = self.checkpoint.parent
+        with file_lock(folder / LOCK, shared=True, create=False):   # not while a ship writes the pair
+            now = shipped_model(self.domain, folder.parent)
+            if now is None or now.info != self.info:
+                raise ShipError(f"{folder / SIDECAR}: the {self.domain} model was shipped again while this "
+                                "command read it; run the command again")
+            want = self.info.get("checkpoint", {})
+            got = sha256_file(self.checkpoint)
         if got != want.get("sha256"):
             raise ShipError(f"{self.checkpoint}: sha256 {got[:12]}... differs from its sidecar's "
                             f"{str(want.get('sha256'))[:12]}... (a damaged or replaced shipped model)")
@@ -174,7 +190,7 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     checksums. Both files are written atomically; an earlier shipped model is replaced.
     """
     from plad.domains import get_domain
-    from plad.fsutil import atomic_write_text
+    from plad.fsutil import atomic_write_text, file_lock
     from plad.model.checkpoint import CheckpointError, load_model, save_checkpoint
 
     checkpoint, metrics, root = Path(checkpoint), Path(metrics), Path(root)
@@ -188,16 +204,22 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
         raise ShipError(f"{params_path}: no such params file (the provenance of the model)")
     provenance = _provenance(domain, root, Path(params_path), data_dir)
     folder = Path(dest or shipped_dir()) / domain
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ShipError(f"{folder}: cannot create the shipped model's folder ({err.strerror or err})") from None
     names = get_domain(domain).tokens.names
-    out = save_checkpoint(folder / CHECKPOINT, model, domain, names)
-    info = {
-        "format": FORMAT, "domain": domain, "method": method,
-        "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(out), "bytes": out.stat().st_size,
-                       "shipped_from": _portable(checkpoint, root)},
-        "config": model.cfg.to_dict(), "tokens": list(names),
-        "metrics": test, "metrics_file": _portable(metrics, root),
-        "provenance": provenance,
-    }
-    atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")
+    with file_lock(folder / LOCK) as held:   # the pair is written by one ship at a time
+        if not held:
+            raise ShipError(f"{folder}: cannot create {LOCK} there (a read-only folder?); pass --dest a writable one")
+        out = save_checkpoint(folder / CHECKPOINT, model, domain, names)
+        info = {
+            "format": FORMAT, "domain": domain, "method": method,
+            "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(out), "bytes": out.stat().st_size,
+                           "shipped_from": _portable(checkpoint, root)},
+            "config": model.cfg.to_dict(), "tokens": list(names),
+            "metrics": test, "metrics_file": _portable(metrics, root),
+            "provenance": provenance,
+        }
+        atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")
     return ShippedModel(domain, out, info)

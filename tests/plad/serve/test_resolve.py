@@ -94,6 +94,40 @@ def test_ship_writes_a_small_checkpoint_and_its_sidecar(trained, shipped):
     assert model.checkpoint.stat().st_size <= (trained / "runs/pretrain/csg2d/best.pt").stat().st_size
 
 
+def test_ships_at_once_write_whole_pairs_and_a_reader_never_takes_a_mixed_one(trained, shipped, tmp_path):
+    import threading
+
+    from plad.fsutil import file_lock
+    from plad.shipped import LOCK, ShipError, ship, shipped_model
+
+    dest = tmp_path / "shipped"
+    shutil.copytree(shipped, dest)
+    read = shipped_model("csg2d", dest)                # a command has read the sidecar, not yet the checkpoint
+    metrics = tmp_path / "metrics.json"                # the same model's evaluation with another mean: a new sidecar
+    record = json.loads((trained / "results/eval/sp/csg2d/metrics.json").read_text())
+    record["test"]["mean"] = 1.25
+    metrics.write_text(json.dumps(record))
+    sidecar = dest / "csg2d" / "model.json"
+    before = sidecar.read_bytes()
+    done = []
+    with file_lock(dest / "csg2d" / LOCK):          # another ship is writing the pair
+        thread = threading.Thread(target=lambda: done.append(ship(
+            "csg2d", trained / "runs/pretrain/csg2d/best.pt", metrics, dest=dest, root=trained,
+            params=REPO / "params.yaml")))
+        thread.start()
+        thread.join(1.0)
+        assert thread.is_alive() and sidecar.read_bytes() == before   # waits, writes nothing meanwhile
+    thread.join(300)
+    assert len(done) == 1 and done[0].test["mean"] == 1.25
+    with pytest.raises(ShipError) as err:
+        read.verify()
+    assert str(err.value) == f"{sidecar}: the csg2d model was shipped again while this command read it; run the " \
+                             "command again"
+    now = shipped_model("csg2d", dest)
+    now.verify()                                       # the new pair is whole
+    assert now.test["mean"] == 1.25
+
+
 def test_ship_refuses_metrics_of_another_model(trained, tmp_path, capsys):
     other = tmp_path / "other.json"
     record = json.loads((trained / "results/eval/sp/csg2d/metrics.json").read_text())
