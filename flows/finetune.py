@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
 
         if not PREFECT_API_URL.value():   # a temporary server would start, serve nothing and keep no schedule
             parser.error("--serve needs a running Prefect server: start `prefect server start` and set "
-                         "PREFECT_API_URL=http://127.0.0.1:4200/api (README, Prefect)")
+                         'PREFECT_API_URL=http://127.0.0.1:4200/api (docs/pipeline.md, "Periodic retraining")')
 
     def go() -> None:
         if args.serve:

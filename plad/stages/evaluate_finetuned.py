@@ -12,7 +12,7 @@ into ``results/eval/<method>_beam<k>/<domain>/``. The files and MLflow runs
 Why one process: a stage process pays about 4 s of CPU to import torch and
 MLflow and open the store before its work, and DVC a per-stage cost that
 grows with ``dvc.lock``; in the smoke profile an evaluation's own work is
-about a second (README, "What the smoke run costs").
+about a second (docs/performance.md, "What the smoke run costs").
 """
 from __future__ import annotations
 

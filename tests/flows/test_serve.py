@@ -1,5 +1,5 @@
-"""The README's periodic-retraining recipe on real processes: `prefect server start`, the flow served with
-`python -m flows.finetune --serve`, and a retraining that picks up new shapes once they are prepared.
+"""The periodic-retraining recipe of docs/pipeline.md on real processes: `prefect server start`, the flow
+served with `python -m flows.finetune --serve`, and a retraining that picks up new shapes once they are prepared.
 
 New shapes reach a flow run through the prepared file of its layout root (what `python -m
 flows.prepare_data` or `dvc repro prepare` writes); here the prepared 2D file is rewritten with more

@@ -45,7 +45,7 @@ def smoke_run(tmp_path_factory, datasets_dir):
            "MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}", "GIT_AUTHOR_NAME": "t",
            "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
     env.pop("PLAD_PIPELINE_ID", None)
-    # the README's warm runner: stage commands forked from one server with torch and MLflow imported
+    # the warm runner (docs/performance.md): stage commands forked from one server with torch and MLflow imported
     # (about 3 s of CPU saved per stage); its own socket folder, and a short idle time so that it ends
     # soon after the run and reports what it served
     warm = tmp_path_factory.mktemp("warm")

@@ -259,7 +259,7 @@ def test_a_checkpoint_config_without_the_new_keys_builds_the_old_network(tmp_pat
 # -- params and plots ------------------------------------------------------------------------------
 def test_the_cpu_profile_has_the_curriculum_for_the_3d_domains_and_paper_the_plain_schedule():
     """The 3D domains pretrain with the curriculum, He init, the input-conditioned BOS and warm-up in the cpu
-    (and smoke) profile; 2D keeps the plain schedule, measured better there (README, "This wave's cpu runs"),
+    (and smoke) profile; 2D keeps the plain schedule, measured better there (docs/results-history.md),
     and so does every domain in the paper profile."""
     from plad.config import section
     from plad.learn.pretrain import PretrainConfig
