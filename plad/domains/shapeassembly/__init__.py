@@ -115,7 +115,7 @@ class ShapeAssembly(Domain):
     # part run in order (the first translates, the second scales and turns), Squeeze's two targets play
     # different roles (the named face against the first), a Reflect or Translate copy re-solves the moves in
     # order, and every number moves or sizes a cuboid and so places what is attached to it: numbers that
-    # draw the same voxels do so only in context (docs/shapeassembly.md, "The discretized language").
+    # draw the same voxels do so only in context (docs/shapeassembly.md, "The discretized language of the domain").
 
     floor_name = "one box"
 
