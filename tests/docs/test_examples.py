@@ -1,5 +1,5 @@
 """examples/: every file is an input `plad infer` reads, the .npy files are the executions of the
-programs examples/README.md names, and every examples/ path the README uses exists."""
+programs examples/README.md names, and every examples/ path the README and docs/ use exists."""
 from __future__ import annotations
 
 import re
@@ -51,13 +51,15 @@ def test_the_shapeassembly_programs_execute_to_their_voxels(tmp_path):
         assert np.array_equal(np.load(tmp_path / f"{stem}.npy"), np.load(EXAMPLES / "shapeassembly" / f"{stem}.npy"))
 
 
-def test_every_examples_path_in_the_readme_exists():
+def test_every_examples_path_in_the_readme_and_docs_exists():
     readme = (REPO / "README.md").read_text()
-    paths = set(re.findall(r"examples/[\w./-]*\w", readme))
-    assert paths, "the README uses no example"
+    assert re.search(r"examples/[\w./-]*\w", readme), "the README uses no example"
+    texts = [readme, *(p.read_text() for p in sorted((REPO / "docs").glob("*.md")))]
+    paths = {p for text in texts for p in re.findall(r"examples/[\w./-]*\w", text)}
     missing = sorted(p for p in paths if not (REPO / p).exists())
     assert not missing, missing
     # the ShapeAssembly commands run on a file the repository ships
-    for line in readme.splitlines():
-        if line.startswith("plad execute shapeassembly"):
-            assert "examples/shapeassembly/" in line, line
+    commands = [line for text in texts for line in text.splitlines() if line.startswith("plad execute shapeassembly")]
+    assert commands, "no page shows `plad execute shapeassembly`"
+    for line in commands:
+        assert "examples/shapeassembly/" in line, line
