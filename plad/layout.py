@@ -41,6 +41,7 @@ LAST = "last.pt"          # pretraining's resume state
 STATE = "state.json"      # a fine-tuning run's loop state and history
 SUMMARY = "summary.json"  # a run's summary
 HISTORY = "history.csv"   # pretraining's per-epoch metrics
+PROVENANCE = "provenance.json"  # a pretraining's segments (what its checkpoint holds)
 # file names of a test evaluation and of the report
 METRICS = "metrics.json"
 GRID = "grid.png"

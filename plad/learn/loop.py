@@ -36,6 +36,7 @@ last ``keep_best``.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -88,7 +89,8 @@ def budget_seconds(max_minutes: float | None) -> float:
 
 @dataclass
 class Limits:
-    """When a loop stops: ``max_units`` done, ``patience`` spent without improvement, or the budget."""
+    """When a loop stops: ``max_units`` done, ``patience`` spent without improvement, or the budget (units
+    and budget of the current segment, see :attr:`LoopState.segment_unit`)."""
 
     max_units: int
     patience: float = math.inf
@@ -117,6 +119,10 @@ class LoopState:
     since_best: float = 0           # patience spent since the best unit
     seconds: float = 0.0            # budget time spent, over all resumes
     history: list[dict[str, Any]] = field(default_factory=list)
+    #: units and seconds done before this segment: a run continued from another run's state (a pretraining
+    #: continued from a checkpoint, plad.learn.pretrain) counts its limits from here; 0 for a fresh run
+    segment_unit: int = 0
+    segment_seconds: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -126,7 +132,14 @@ class LoopState:
         """Read a saved state, including the files written before this module existed (see :func:`upgrade_state`)."""
         d = upgrade_state(d, unit_name)
         return cls(**{k: d[k] for k in ("unit_name", "unit", "best", "best_unit", "since_best", "seconds",
-                                        "history") if k in d})
+                                        "history", "segment_unit", "segment_seconds") if k in d})
+
+    def new_segment(self, objective: Direction) -> LoopState:
+        """This state as the start of a new segment: its units, time and history kept, its limits counted from
+        here, and the best forgotten (a segment selects its best on its own validation data)."""
+        return dataclasses.replace(self, best=worst(objective), best_unit=self.unit, since_best=0,
+                                   segment_unit=self.unit, segment_seconds=self.seconds,
+                                   history=list(self.history))
 
 
 @dataclass
@@ -221,12 +234,12 @@ class Loop:
 
     def _stop(self, s: LoopState) -> str | None:
         lim = self.limits
-        if s.unit >= lim.max_units:
+        if s.unit - s.segment_unit >= lim.max_units:
             return f"max_{self.unit_name}s"
         if s.since_best >= lim.patience:
             return "patience"
         # at least one unit per loop before the budget applies (see the module docstring)
-        if s.unit > 0 and s.seconds >= lim.budget_seconds:
+        if s.unit > s.segment_unit and s.seconds - s.segment_seconds >= lim.budget_seconds:
             return "budget"
         return None
 
@@ -249,7 +262,11 @@ class Loop:
         self.limits = dist.broadcast(self.limits)   # budgets computed from each rank's clock: rank 0's rule
         if saved is not None:
             s = LoopState.from_dict(saved, self.unit_name)
-            if dist.is_main():   # the user sees that the run continues, and from where
+            if dist.is_main() and s.unit == s.segment_unit > 0:   # a new segment of a continued run (no epoch
+                # of a segment is committed before its first one ends, so this is never a resume)
+                print(f"continuing after {self.unit_name} {s.unit} ({s.seconds:.0f} s trained before) as a new "
+                      f"segment", file=sys.stderr)
+            elif dist.is_main():   # the user sees that the run continues, and from where
                 print(f"resuming from {self.unit_name} {s.unit + 1} ({s.unit} finished, {s.seconds:.0f} s of "
                       f"budget spent; best {s.best:.6g} at {self.unit_name} {s.best_unit})", file=sys.stderr)
         else:
@@ -262,14 +279,14 @@ class Loop:
                     keep_best(0, value)
                 if self.store and dist.is_main():
                     self.store.commit(s.to_dict())
-        bar = tqdm(total=self.limits.max_units, initial=s.unit, desc=progress, unit=self.unit_name,
+        bar = tqdm(total=s.segment_unit + self.limits.max_units, initial=s.unit, desc=progress, unit=self.unit_name,
                    disable=None if progress and dist.is_main() else True)
         while (stopped := self._stop(s)) is None:
             unit = s.unit + 1
             t0 = time.monotonic()
             spent = s.seconds
 
-            def remaining(spent: float = spent, t0: float = t0) -> float:
+            def remaining(spent: float = spent - s.segment_seconds, t0: float = t0) -> float:
                 return self.limits.budget_seconds - spent - (time.monotonic() - t0)
 
             result = step(unit, remaining)

@@ -42,13 +42,13 @@ from plad.data.batching import bucketed
 from plad.device import resolve_device
 from plad.domains.base import pad_programs
 from plad.fsutil import atomic_write_text
-from plad.layout import HISTORY, LAST, SUMMARY, Layout
+from plad.layout import BEST, HISTORY, LAST, PROVENANCE, SUMMARY, Layout
 from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig
 from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
 from plad.learn.synthetic import load_programs, make_batch
-from plad.learn.train import TrainConfig, fit
+from plad.learn.train import VAL_LOSS, TrainConfig, fit
 from plad.model.checkpoint import read_checkpoint
 from plad.model.network import Architecture, ModelConfig, PLADNet, count_parameters
 
@@ -72,6 +72,16 @@ class PretrainConfig:
     model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    #: continue from a checkpoint: None (from scratch); "shipped" (the domain's shipped pretrained network,
+    #: resolved by the stage: :func:`plad.shipped.pretrained_checkpoint`); or the path of a pretraining's
+    #: ``last.pt`` or of a shipped ``pretrained.pt``, relative to the layout root. The run goes on from its
+    #: weights, optimizer, schedule, curriculum stage and history as a new segment, in which
+    #: ``train.max_epochs`` and ``max_minutes`` count this segment's epochs and minutes
+    init: str | None = None
+    #: the learning rate of a continued run: "restart" (back to ``train.lr`` after the warm-up, a fresh plateau
+    #: schedule, Adam's moments kept: a rate that a plateau rule drove to its floor is never resumed) or
+    #: "resume" (the saved schedule goes on: the segment trains as the run would have gone on)
+    continue_lr: str = "restart"
 
 
 
@@ -96,9 +106,92 @@ def real_val_shapes(path: Path, n: int) -> torch.Tensor:
 
 
 
-def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> dict:
-    """Train p(z|x) on the domain's synthetic programs; returns the summary (also written to disk)."""
+CONTINUE_LR = ("restart", "resume")
+
+
+def read_init(path: Path, cfg: PretrainConfig, model_cfg: ModelConfig) -> dict:
+    """The training state a continued pretraining starts from, checked against this run's settings."""
+    from plad.model.checkpoint import CheckpointError
+
+    if not path.is_file():
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {path} not found (a pretraining's last.pt or a shipped "
+                          f"pretrained.pt; null: from scratch)")
+    try:
+        payload = read_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {err}") from None
+    if payload.get("domain") != cfg.domain:
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {path} is a {payload.get('domain')} checkpoint")
+    missing = [k for k in ("optimizer", "scheduler", "rng") if k not in payload]
+    if missing or not ("loop" in payload or "train_state" in payload):
+        what = ", ".join(missing) or "loop"
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {path} holds no training state to continue ({what} "
+                          "missing): a pretraining's last.pt or a shipped pretrained.pt")
+    theirs, ours = payload.get("config", {}), model_cfg.to_dict()
+    differ = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+    if differ:
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {path} is another network than pretrain.{cfg.domain}.model "
+                          f"({', '.join(f'{k}: {theirs.get(k)!r} there, {ours.get(k)!r} here' for k in differ)})")
+    if (payload.get("stages") is not None) != cfg.curriculum.enabled:
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {path} was trained with curriculum.enabled "
+                          f"{not cfg.curriculum.enabled}; continue it with the same setting")
+    return payload
+
+
+def legacy_segment(payload: dict) -> dict:
+    """The one segment of a checkpoint written before segments were recorded, from its loop state: what it
+    says for sure (epochs, steps, shapes, seconds, the last epoch's metrics); commit and threads unknown."""
+    from plad.learn.loop import LoopState, upgrade_state
+
+    state = LoopState.from_dict(payload["loop"] if "loop" in payload else upgrade_state(payload["train_state"],
+                                                                                       "epoch"), "epoch")
+    fp = payload.get("fingerprint") or {}
+    steps = state.unit * int(fp.get("steps_per_epoch", 0))
+    return {"recorded": False, "commit": None, "dirty": None, "threads": None, "device": None,
+            "epochs": [1, state.unit], "steps": steps, "shapes_seen": steps * int(fp.get("batch_size", 0)),
+            "train_seconds": round(state.seconds, 1), "cpu_hours": None,
+            "synthetic": {"train_programs": fp.get("train_programs"), "checksum": fp.get("synthetic_checksum")},
+            "end": _end_metrics(state.history)}
+
+
+def _end_metrics(history: list[dict]) -> dict:
+    last = history[-1] if history else {}
+    return {k: round(float(v), 6) for k, v in last.items()
+            if k.startswith(("real_val_", "val_")) or k in ("prefix_gap", "train_loss", "lr")}
+
+
+def totals(segments: list[dict]) -> dict:
+    """What the segments hold together; ``cpu_hours`` sums the segments that know theirs (all: ``complete``)."""
+    known = [s["cpu_hours"] for s in segments if s.get("cpu_hours") is not None]
+    return {"segments": len(segments),
+            "epochs": sum(s["epochs"][1] - s["epochs"][0] + 1 for s in segments),
+            "steps": sum(s["steps"] for s in segments), "shapes_seen": sum(s["shapes_seen"] for s in segments),
+            "train_seconds": round(sum(s["train_seconds"] for s in segments), 1),
+            "cpu_hours": round(sum(known), 3), "cpu_hours_complete": len(known) == len(segments),
+            "gpu_hours": round(sum(s.get("gpu_hours") or 0 for s in segments), 3)}
+
+
+def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init_path: Path | None = None) -> dict:
+    """Train p(z|x) on the domain's synthetic programs; returns the summary (also written to disk).
+
+    ``init_path``: the checkpoint ``cfg.init`` names, resolved by the caller (the stage resolves
+    ``"shipped"``); by default ``cfg.init`` relative to the layout root.
+    """
+    from datetime import datetime, timezone
+
     from plad.domains import get_domain
+    from plad.learn.loop import LoopState
+    from plad.learn.train import Init
+    from plad.model.checkpoint import save_checkpoint
+    from plad.provenance import code_state, machine
+
+    if cfg.continue_lr not in CONTINUE_LR:
+        raise ConfigError(f"pretrain.{cfg.domain}.continue_lr: {cfg.continue_lr!r}; one of {', '.join(CONTINUE_LR)}")
+    if init_path is None and cfg.init is not None:
+        if cfg.init == "shipped":
+            raise ConfigError(f"pretrain.{cfg.domain}.init: 'shipped' is resolved by the pretrain stage "
+                              "(plad.stages.pretrain); pass init_path")
+        init_path = Path(cfg.init) if Path(cfg.init).is_absolute() else layout.root / cfg.init
     from plad.model.decode import greedy_decode
 
     domain = get_domain(cfg.domain)
@@ -114,6 +207,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
     real = real_val_shapes(layout.prepared(cfg.domain), cfg.real_val_shapes).to(device) \
         if cfg.real_val_shapes else None
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
+    init_payload = read_init(init_path, cfg, model.cfg) if init_path is not None else None
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     history = out / HISTORY
@@ -172,7 +266,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
                 prefix_gap(m, *make_batch(domain, rows[: max(2, cfg.gap_programs)], device))
         return out
 
-    def record(unit: int, row: dict[str, float]) -> None:
+    def record(unit: int, row: dict[str, float], notify: bool = True) -> None:
         # history.csv keeps its columns (DVC plots it: x epoch, y val_loss); the loop's own
         # bookkeeping (unit, val, seconds) is in last.pt
         metrics = {k: v for k, v in row.items() if k not in ("unit", "val", "seconds", "unit_seconds")}
@@ -184,7 +278,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
             if new:
                 writer.writeheader()
             writer.writerow(line)
-        if on_epoch:
+        if on_epoch and notify:
             on_epoch(unit, metrics)
 
     # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
@@ -193,18 +287,83 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None) -> d
                    "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
                    "warmup_steps": cfg.train.warmup_steps, "curriculum": asdict(cfg.curriculum),
                    # buckets change the batches (plain batches keep the fingerprint of earlier versions)
-                   **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {})}
+                   **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {}),
+                   # a continued run resumes only from a last.pt that continued the same checkpoint the same way
+                   **({"init": sha256_file(init_path), "continue_lr": cfg.continue_lr} if init_path else {})}
     last = out / LAST
     if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
         history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
+        if init_payload is not None:   # a new segment: the history it continues comes first
+            for row in LoopState.from_dict(init_payload.get("loop") or init_payload["train_state"], "epoch").history:
+                if row.get("unit", 0) > 0:
+                    record(row["unit"], row, notify=False)
+
+    # provenance: the segments of the checkpoint continued, then this one (rebuilt from the loop state at
+    # every commit of last.pt, so that a killed run's checkpoint says what it holds)
+    prior = ((init_payload.get("provenance") or {}).get("segments") or [legacy_segment(init_payload)]) \
+        if init_payload is not None else []
+    here = {"recorded": True, **code_state(), "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "device": str(device), "threads": torch.get_num_threads(), "world": dist.world(), "machine": machine(),
+            "init": {"file": init_path.name, "sha256": sha256_file(init_path)} if init_path else None,
+            "continue_lr": cfg.continue_lr if init_path else None,
+            "synthetic": synthetic_record(layout, cfg.domain, len(train), fingerprint["synthetic_checksum"]),
+            "params": asdict(cfg)}
+
+    def provenance(state: dict) -> dict:
+        s = LoopState.from_dict(state, "epoch")
+        steps = (s.unit - s.segment_unit) * cfg.train.steps_per_epoch
+        seconds = s.seconds - s.segment_seconds
+        hours = seconds * (dist.world() if device.type == "cuda" else here["threads"]) / 3600
+        segment = {**here, "epochs": [s.segment_unit + 1, s.unit], "steps": steps,
+                   "shapes_seen": steps * bs * dist.world(), "train_seconds": round(seconds, 1),
+                   "cpu_hours": round(hours, 4) if device.type == "cpu" else None,
+                   "gpu_hours": round(hours, 4) if device.type == "cuda" else None,
+                   "end": _end_metrics(s.history if s.unit > s.segment_unit else [])}
+        segments = [*prior, segment]
+        return {"provenance": {"segments": segments, "totals": totals(segments)}}
+
     start = time.monotonic()
+    init = Init(init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if init_payload else None
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
                  budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
-                 fingerprint=fingerprint, stages=curriculum)
+                 fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance)
     final = validate(model)
+    if last.exists():
+        record_ = provenance(read_checkpoint(last)["loop"])["provenance"]
+    else:   # a segment of no epochs: the model is the one continued, and so is its record
+        record_ = {"segments": prior, "totals": totals(prior)} if prior else None
     summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
                "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
-               **{k: round(v, 6) for k, v in final.items()}}
+               **{k: round(v, 6) for k, v in final.items()},
+               **({"totals": record_["totals"]} if record_ else {})}
     if dist.is_main():
+        if record_ is not None:   # the selected model says what it holds too
+            best = read_checkpoint(out / BEST)
+            save_checkpoint(out / BEST, model, cfg.domain, domain.tokens.names,
+                            {k: best[k] for k in ("unit", "val") if k in best} | {"provenance": record_})
+            atomic_write_text(out / PROVENANCE, json.dumps(record_, indent=2) + "\n")
         atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def synthetic_record(layout: Layout, domain: str, train_programs: int, checksum: int) -> dict:
+    """What the segment trained on: the synthetic file's sampler and seed (from its summary) and size."""
+    info = {}
+    path = layout.synthetic_summary(domain)
+    if path.is_file():
+        try:
+            info = json.loads(path.read_text())
+        except ValueError:
+            info = {}
+    return {"file": layout.synthetic(domain).name, "sampler": info.get("sampler"), "seed": info.get("seed"),
+            "train_programs": train_programs, "checksum": checksum}
+
+
+def sha256_file(path: Path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

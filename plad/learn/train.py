@@ -29,7 +29,7 @@ import torch
 
 from plad.layout import BEST, LAST
 from plad.learn import distributed as dist
-from plad.learn.loop import Limits, Loop, LoopResult, Objective, Unit, upgrade_state
+from plad.learn.loop import Limits, Loop, LoopResult, LoopState, Objective, Unit, upgrade_state
 from plad.model.checkpoint import read_checkpoint, save_checkpoint
 from plad.model.network import PLADNet
 
@@ -100,22 +100,61 @@ class Stages(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
+@dataclass
+class Init:
+    """Where a continued training starts: another run's ``last.pt`` payload (weights, optimizer, schedule,
+    RNGs, stages and loop state), continued as a new segment (:meth:`plad.learn.loop.LoopState.new_segment`).
+
+    ``restart_lr``: the learning rate goes back to ``lr`` with the warm-up of :class:`TrainConfig` counted
+    from the segment's first step, and the plateau schedule starts afresh; otherwise the saved schedule
+    continues, and the segment trains exactly as the run it continues would have gone on.
+    """
+
+    payload: dict[str, Any]
+    objective: Objective
+    restart_lr: bool = False
+    lr: float = 1e-3
+
+
 class _LastCheckpoint:
     """The loop's store for :func:`fit`: weights, optimizer, schedule, RNGs and loop state in one atomic ``last.pt``."""
 
     def __init__(self, path: Path, model: PLADNet, opt, sched, domain: str, token_names: list[str],
-                 fingerprint: dict | None, stages: Stages | None = None):
+                 fingerprint: dict | None, stages: Stages | None = None, init: Init | None = None,
+                 extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None):
         self.path, self.model, self.opt, self.sched = path, model, opt, sched
         self.domain, self.token_names, self.fingerprint = domain, token_names, fingerprint
-        self.stages = stages
+        self.stages, self.init, self.extra = stages, init, extra
+        #: units done before this segment (set by load; 0 for a fresh run)
+        self.segment_unit = 0
 
     def load(self) -> dict[str, Any] | None:
         payload = read_checkpoint(self.path) if self.path.exists() else None
+        if payload is not None and payload.get("fingerprint") != self.fingerprint:
+            log.warning("%s was written with other settings; starting over", self.path)
+            payload = None
+        if payload is None and self.init is not None:
+            return self._start_segment()
         if payload is None:
             return None
-        if payload.get("fingerprint") != self.fingerprint:
-            log.warning("%s was written with other settings; starting over", self.path)
-            return None
+        state = self._restore(payload)
+        self.segment_unit = int(state.get("segment_unit", 0))
+        return state
+
+    def _start_segment(self) -> dict[str, Any]:
+        """Continue another run's state (``init``) as a new segment of this one."""
+        state = LoopState.from_dict(self._restore(self.init.payload), "epoch").new_segment(self.init.objective)
+        self.segment_unit = state.segment_unit
+        if self.init.restart_lr:   # a rate a plateau rule drove to its floor is not resumed; Adam's moments are
+            for group in self.opt.param_groups:
+                group["lr"] = self.init.lr
+            fresh = type(self.sched)(self.opt, mode=self.sched.mode, factor=self.sched.factor,
+                                     patience=self.sched.patience, threshold=self.sched.threshold,
+                                     threshold_mode=self.sched.threshold_mode, min_lr=self.sched.min_lrs)
+            self.sched.load_state_dict(fresh.state_dict())
+        return state.to_dict()
+
+    def _restore(self, payload: dict[str, Any]) -> dict[str, Any]:
         self.model.load_state_dict(payload["state_dict"])
         self.opt.load_state_dict(payload["optimizer"])
         self.sched.load_state_dict(payload["scheduler"])
@@ -129,7 +168,8 @@ class _LastCheckpoint:
         save_checkpoint(self.path, self.model, self.domain, self.token_names, {
             "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(), "loop": state,
             "rng": _rng_state(), "fingerprint": self.fingerprint,
-            "stages": self.stages.state_dict() if self.stages is not None else None})
+            "stages": self.stages.state_dict() if self.stages is not None else None,
+            **(self.extra(state) if self.extra is not None else {})})
 
 
 def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
@@ -138,7 +178,8 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         budget_seconds: float = math.inf,
         on_unit: Callable[[int, dict[str, Any]], None] | None = None,
         loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None,
-        desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None) -> LoopResult:
+        desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None,
+        init: Init | None = None, extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> LoopResult:
     """Train until early stopping, ``max_epochs`` or the time budget; resume from ``out_dir/last.pt``.
 
     ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
@@ -153,7 +194,10 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     validation metrics, ``lr``). ``fingerprint`` identifies the run's settings:
     a ``last.pt`` written under another fingerprint is not resumed. ``stages``
     (e.g. a curriculum, which ``batches`` reads) is told each epoch's metrics
-    and saved with ``last.pt``; see :class:`Stages`.
+    and saved with ``last.pt``; see :class:`Stages`. ``init``: when ``out_dir`` holds no ``last.pt`` of this
+    run, start from another run's state as a new segment (see :class:`Init`); ``max_epochs`` and the budget
+    then count this segment's epochs and time. ``extra(loop_state)`` returns more keys for ``last.pt`` (e.g.
+    provenance).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -171,7 +215,9 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         total, total_acc = 0.0, 0.0
         it = batches(unit - 1)   # batch streams are numbered from 0
         for i in range(cfg.steps_per_epoch):
-            step = (unit - 1) * cfg.steps_per_epoch + i
+            # the warm-up counts from the first step of the run, or of the segment when it restarts the rate
+            first = store.segment_unit if init is not None and init.restart_lr else 0
+            step = (unit - 1 - first) * cfg.steps_per_epoch + i
             if step < cfg.warmup_steps:   # linear warm-up; the plateau schedule takes over after it
                 for group in opt.param_groups:
                     group["lr"] = cfg.lr * (step + 1) / cfg.warmup_steps
@@ -192,7 +238,8 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         final = stages is None or stages.final   # the stage this epoch trained in
         if stages is not None:
             metrics.update(stages.end_epoch(cfg.steps_per_epoch, metrics))
-        if final and unit * cfg.steps_per_epoch >= cfg.warmup_steps:
+        first = store.segment_unit if init is not None and init.restart_lr else 0
+        if final and (unit - first) * cfg.steps_per_epoch >= cfg.warmup_steps:
             sched.step(value)
         return Unit(value, {**metrics, "lr": opt.param_groups[0]["lr"]}, patience=1 if final else 0)
 
@@ -201,8 +248,11 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
             save_checkpoint(out / BEST, model, domain, token_names, {"unit": unit, "val": value})
 
     def restore_best() -> None:
+        if not (out / BEST).exists():   # a segment of no epochs: its model is the one it continued
+            keep_best(store.segment_unit, math.nan)
+            return
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
-    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint, stages)
+    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint, stages, init, extra)
     loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, budget_seconds), store)
     return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit, progress=desc)

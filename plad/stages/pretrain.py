@@ -8,12 +8,29 @@ from __future__ import annotations
 
 import sys
 from dataclasses import asdict
+from pathlib import Path
 
-from plad.layout import BEST, HISTORY, SUMMARY
+from plad.config import ConfigError
+from plad.layout import BEST, HISTORY, PROVENANCE, SUMMARY
 from plad.learn import distributed as dist
 from plad.learn.pretrain import PretrainConfig, pretrain
 from plad.learn.synthetic import load_programs
 from plad.stages import StageContext, stage_main
+
+
+def resolve_init(cfg: PretrainConfig, layout) -> Path | None:
+    """The checkpoint ``cfg.init`` names: ``"shipped"`` is the domain's shipped pretrained network (verified
+    against its index), a path is relative to the layout root."""
+    if cfg.init is None:
+        return None
+    if cfg.init == "shipped":
+        from plad.shipped import ShipError, pretrained_checkpoint
+
+        try:
+            return pretrained_checkpoint(cfg.domain)
+        except ShipError as err:
+            raise ConfigError(f"pretrain.{cfg.domain}.init: {err}") from None
+    return Path(cfg.init) if Path(cfg.init).is_absolute() else layout.root / cfg.init
 
 
 def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) -> dict:
@@ -21,14 +38,19 @@ def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) ->
     from plad.tracking import StageRun
 
     load_programs(ctx.layout.synthetic(cfg.domain))  # fail before any MLflow run starts
+    init = resolve_init(cfg, ctx.layout)
     if not dist.is_main():   # one MLflow run per training, rank 0's
-        return pretrain(cfg, ctx.layout)
+        return pretrain(cfg, ctx.layout, init_path=init)
     out = ctx.layout.pretrain_dir(cfg.domain)
     with StageRun("pretrain", cfg.domain, asdict(cfg), out, params_path=ctx.params) as run:
-        summary = pretrain(cfg, ctx.layout, on_epoch=lambda e, m: run.log_metrics(m, step=e))
+        summary = pretrain(cfg, ctx.layout, on_epoch=lambda e, m: run.log_metrics(m, step=e), init_path=init)
         run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
+        run.log_metrics({f"total_{k}": float(v) for k, v in summary.get("totals", {}).items()
+                         if isinstance(v, (int, float))})
         run.log_artifact(out / SUMMARY)
         run.log_artifact(out / HISTORY)
+        if (out / PROVENANCE).exists():
+            run.log_artifact(out / PROVENANCE)
         run.log_artifact(out / BEST, "checkpoint")
         run.log_model(out / BEST)
     return summary

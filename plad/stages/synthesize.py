@@ -68,7 +68,7 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
             arrays[f"{split}_complexity"] = domain.complexity(arrays[split]).astype(np.int16)
     atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)
-    summary = {"domain": cfg.domain, "sampler": cfg.sampler, "train": int(len(arrays["train"])),
+    summary = {"domain": cfg.domain, "sampler": cfg.sampler, "seed": cfg.seed, "train": int(len(arrays["train"])),
                "val": int(len(arrays["val"])),
                "mean_length": round(float(lengths.mean()), 3) if len(lengths) else 0.0}
     if "train_complexity" in arrays and len(lengths):

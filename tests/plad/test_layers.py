@@ -12,7 +12,7 @@ from tests.conftest import REPO_ROOT
 
 #: bottom to top; a module may import its own layer and the layers below it
 LAYERS = [
-    ("plad", "plad.errors", "plad.fsutil", "plad.layout"),
+    ("plad", "plad.errors", "plad.fsutil", "plad.layout", "plad.provenance"),
     ("plad.metrics",),
     ("plad.domains.grammar",),   # the token table: data, which the datasets' languages use too
     ("plad.data",),
