@@ -223,3 +223,111 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
         }
         atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")
     return ShippedModel(domain, out, info)
+
+
+# -- pretrained networks (supervised pretraining, SP), kept to be continued ------------------------------------
+#: the checkpoint of a domain's pretrained network: its whole training state (weights, optimizer, schedule,
+#: curriculum stage, history, provenance segments), so that a pretraining can continue it (pretrain.init)
+PRETRAINED = "pretrained.pt"
+#: one index for every domain's pretrained network: the pretraining stages depend on this one file, which
+#: names each checkpoint's sha256 (a domain without a pretrained network has no entry)
+PRETRAINED_INDEX = "pretrained.json"
+PRETRAINED_FORMAT = "plad-pretrained-1"
+#: a shipped file stays small enough for the repository and the package
+MAX_BYTES = 20 * 1024 * 1024
+
+
+def _read_index(base: Path) -> dict[str, Any]:
+    path = base / PRETRAINED_INDEX
+    if not path.is_file():
+        return {"format": PRETRAINED_FORMAT, "domains": {}}
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ShipError(f"{path}: not a readable index of pretrained networks ({err})") from None
+    if not isinstance(index, dict) or index.get("format") != PRETRAINED_FORMAT or \
+            not isinstance(index.get("domains"), dict):
+        raise ShipError(f"{path}: not an index of pretrained networks (expected format {PRETRAINED_FORMAT})")
+    return index
+
+
+def pretrained_model(domain: str, folder: Path | None = None) -> ShippedModel | None:
+    """The shipped pretrained network of ``domain`` (its index entry as ``info``), or None."""
+    base = folder or shipped_dir()
+    info = _read_index(base)["domains"].get(domain)
+    if info is None:
+        return None
+    path = base / info["checkpoint"]["file"]
+    if not path.is_file():
+        raise ShipError(f"{path}: listed in {base / PRETRAINED_INDEX} but missing")
+    return ShippedModel(domain, path, info)
+
+
+def list_pretrained(folder: Path | None = None) -> list[ShippedModel]:
+    base = folder or shipped_dir()
+    return [m for d in sorted(_read_index(base)["domains"]) if (m := pretrained_model(d, base)) is not None]
+
+
+def pretrained_checkpoint(domain: str, folder: Path | None = None) -> Path:
+    """The verified checkpoint ``pretrain.<domain>.init: shipped`` continues; ShipError when none is shipped."""
+    model = pretrained_model(domain, folder)
+    if model is None:
+        raise ShipError(f"no pretrained {domain} network is shipped in {folder or shipped_dir()} (set "
+                        f"pretrain.{domain}.init: null to pretrain from scratch)")
+    model.verify()
+    return model.checkpoint
+
+
+def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
+                    dest: str | os.PathLike | None = None) -> ShippedModel:
+    """Ship a pretraining's training state (its ``last.pt``) as the pretrained network of ``domain``.
+
+    The checkpoint must carry provenance segments (a pretraining of this version writes them). The file is
+    copied as it is (at most :data:`MAX_BYTES`) and the index entry names its sha256, config and provenance
+    (segments and totals: epochs, shapes seen, CPU hours, the real-validation metric at each segment's end).
+    """
+    import shutil
+    import tempfile
+
+    from plad.model.checkpoint import CheckpointError, read_checkpoint
+
+    checkpoint = Path(checkpoint)
+    try:
+        payload = read_checkpoint(checkpoint)
+    except CheckpointError as err:
+        raise ShipError(str(err)) from None
+    if payload.get("domain") != domain:
+        raise ShipError(f"{checkpoint}: a {payload.get('domain')} checkpoint, not a {domain} one")
+    prov = payload.get("provenance")
+    if not (isinstance(prov, dict) and prov.get("segments")) or "optimizer" not in payload:
+        raise ShipError(f"{checkpoint}: no training state with provenance segments (ship a pretraining's last.pt)")
+    size = checkpoint.stat().st_size
+    if size > MAX_BYTES:
+        raise ShipError(f"{checkpoint}: {size / 2**20:.1f} MiB, above the {MAX_BYTES // 2**20} MiB a shipped file "
+                        "may have")
+    base = Path(dest or shipped_dir())
+    (base / domain).mkdir(parents=True, exist_ok=True)
+    target = base / domain / PRETRAINED
+    with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:   # atomic: no half-copied file
+        with open(checkpoint, "rb") as src:
+            shutil.copyfileobj(src, tmp)
+    os.replace(tmp.name, target)
+    info = {"domain": domain, "method": "sp",
+            "checkpoint": {"file": f"{domain}/{PRETRAINED}", "sha256": sha256_file(target), "bytes": size,
+                           "shipped_from": checkpoint.name},
+            "config": payload.get("config"), "provenance": prov}
+    from plad.fsutil import atomic_write_text
+
+    index = _read_index(base)
+    index["domains"][domain] = info
+    atomic_write_text(base / PRETRAINED_INDEX, json.dumps(index, indent=1) + "\n")
+    return ShippedModel(domain, target, info)
+
+
+def describe_totals(model: ShippedModel) -> str:
+    """``"<epochs> epochs, <shapes> shapes, <h> CPU h"`` of a pretrained network's provenance."""
+    t = (model.info.get("provenance") or {}).get("totals") or {}
+    hours = f"{t.get('cpu_hours', 0):.1f} CPU h" + ("" if t.get("cpu_hours_complete", True) else "+")
+    if t.get("gpu_hours"):
+        hours += f", {t['gpu_hours']:.1f} GPU h"
+    return f"{t.get('epochs', '?')} epochs, {t.get('shapes_seen', 0) / 1e6:.2f} M shapes, {hours}"
