@@ -289,9 +289,11 @@ def cmd_models(args: argparse.Namespace) -> int:
     """List the shipped and the registered models (the default one of each domain marked), or ship one."""
     if args.models_command == "ship":
         return _ship(args)
+    if args.models_command == "ship-pretrained":
+        return _ship_pretrained(args)
     from plad.domains import domain_names
     from plad.serve.resolve import configured_store
-    from plad.shipped import ShipError, list_shipped, shipped_dir
+    from plad.shipped import ShipError, describe_totals, list_pretrained, list_shipped, shipped_dir
 
     rows = []   # (domain, source, model, method, test)
     try:
@@ -299,6 +301,9 @@ def cmd_models(args: argparse.Namespace) -> int:
             t = m.test
             test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
             rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test))
+        # the pretrained networks: what they hold (the SP row of the results is their test metric)
+        for m in list_pretrained():
+            rows.append((m.domain, "pretrained", str(m.checkpoint), "sp", describe_totals(m)))
     except ShipError as err:
         raise UsageError(str(err)) from None
     store = configured_store()
@@ -341,6 +346,17 @@ def _ship(args: argparse.Namespace) -> int:
     print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes) and "
           f"{shipped.checkpoint.with_name('model.json')}: test {shipped.test.get('metric')} "
           f"{shipped.test.get('mean')}, git {git['revision']}{' (dirty)' if git['dirty'] else ''}")
+    return 0
+
+
+def _ship_pretrained(args: argparse.Namespace) -> int:
+    from plad.shipped import ShipError, describe_totals, ship_pretrained
+
+    try:
+        shipped = ship_pretrained(args.domain, args.checkpoint, dest=args.dest)
+    except ShipError as err:
+        raise UsageError(str(err)) from None
+    print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes): {describe_totals(shipped)}")
     return 0
 
 
@@ -426,6 +442,12 @@ def build_parser() -> argparse.ArgumentParser:
                                                "default: .)")
     q.add_argument("--params", default="params.yaml", help="params file, relative to --root (default params.yaml)")
     q.add_argument("--data-dir", default=None, help="data directory (for the data files' checksums)")
+    q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
+                                                "or $PLAD_SHIPPED_DIR)")
+    q = ms.add_parser("ship-pretrained", help="ship a pretraining's state as the pretrained network of its domain "
+                                              "(continued by `pretrain.DOMAIN.init: shipped`)")
+    q.add_argument("domain", choices=domain_names())
+    q.add_argument("checkpoint", help="the pretraining's state, e.g. runs/pretrain/DOMAIN/last.pt")
     q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
                                                 "or $PLAD_SHIPPED_DIR)")
     return parser

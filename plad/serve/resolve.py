@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from plad.shipped import ShipError, shipped_dir, shipped_model
+from plad.shipped import ShipError, pretrained_model, shipped_dir, shipped_model
 
 TRACKING_ENV = "MLFLOW_TRACKING_URI"
 
@@ -106,7 +106,8 @@ def resolve(domain: str, model: str | None = None) -> Choice:
         except ModelError as err:
             notes.append(f"no champion in the MLflow store ({err})")
     try:
-        shipped = shipped_model(domain)
+        # the fine-tuned network, else the pretrained one (a domain that ships no fine-tuned network yet)
+        shipped = shipped_model(domain) or pretrained_model(domain)
         if shipped is not None:
             shipped.verify()
     except ShipError as err:

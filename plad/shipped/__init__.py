@@ -50,6 +50,8 @@ class ShippedModel:
     domain: str
     checkpoint: Path
     info: dict[str, Any]
+    #: "model" (model.pt: the network `plad infer` uses) or "pretrained" (pretrained.pt, continued by pretraining)
+    kind: str = "model"
 
     @property
     def test(self) -> dict[str, Any]:
@@ -57,6 +59,8 @@ class ShippedModel:
         return self.info.get("metrics", {})
 
     def describe(self) -> str:
+        if self.kind == "pretrained":
+            return f"shipped pretrained {self.domain} network (SP; {describe_totals(self)}) {self.checkpoint}"
         m = self.test
         return (f"shipped {self.domain} model ({self.info.get('method', '?')}, test {m.get('metric', '?')} "
                 f"{m.get('mean', '?')}) {self.checkpoint}")
@@ -68,10 +72,11 @@ class ShippedModel:
 
         folder = self.checkpoint.parent
         with file_lock(folder / LOCK, shared=True, create=False):   # not while a ship writes the pair
-            now = shipped_model(self.domain, folder.parent)
+            now = (pretrained_model if self.kind == "pretrained" else shipped_model)(self.domain, folder.parent)
             if now is None or now.info != self.info:
-                raise ShipError(f"{folder / SIDECAR}: the {self.domain} model was shipped again while this "
-                                "command read it; run the command again")
+                where = folder.parent / PRETRAINED_INDEX if self.kind == "pretrained" else folder / SIDECAR
+                raise ShipError(f"{where}: the {self.domain} model was shipped again while this command read it; "
+                                "run the command again")
             want = self.info.get("checkpoint", {})
             got = sha256_file(self.checkpoint)
         if got != want.get("sha256"):
@@ -260,7 +265,7 @@ def pretrained_model(domain: str, folder: Path | None = None) -> ShippedModel | 
     path = base / info["checkpoint"]["file"]
     if not path.is_file():
         raise ShipError(f"{path}: listed in {base / PRETRAINED_INDEX} but missing")
-    return ShippedModel(domain, path, info)
+    return ShippedModel(domain, path, info, "pretrained")
 
 
 def list_pretrained(folder: Path | None = None) -> list[ShippedModel]:
@@ -305,23 +310,29 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
     if size > MAX_BYTES:
         raise ShipError(f"{checkpoint}: {size / 2**20:.1f} MiB, above the {MAX_BYTES // 2**20} MiB a shipped file "
                         "may have")
-    base = Path(dest or shipped_dir())
-    (base / domain).mkdir(parents=True, exist_ok=True)
-    target = base / domain / PRETRAINED
-    with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:   # atomic: no half-copied file
-        with open(checkpoint, "rb") as src:
-            shutil.copyfileobj(src, tmp)
-    os.replace(tmp.name, target)
-    info = {"domain": domain, "method": "sp",
-            "checkpoint": {"file": f"{domain}/{PRETRAINED}", "sha256": sha256_file(target), "bytes": size,
-                           "shipped_from": checkpoint.name},
-            "config": payload.get("config"), "provenance": prov}
-    from plad.fsutil import atomic_write_text
+    from plad.fsutil import atomic_write_text, file_lock
 
-    index = _read_index(base)
-    index["domains"][domain] = info
-    atomic_write_text(base / PRETRAINED_INDEX, json.dumps(index, indent=1) + "\n")
-    return ShippedModel(domain, target, info)
+    base = Path(dest or shipped_dir())
+    try:
+        (base / domain).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ShipError(f"{base / domain}: cannot write there ({err.strerror})") from None
+    target = base / domain / PRETRAINED
+    # the checkpoint and its index entry change together: under the domain's lock (which verify() shares),
+    # and the index, which every domain shares, under its own
+    with file_lock(base / domain / LOCK), file_lock(base / f".{PRETRAINED_INDEX}.lock"):
+        with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:   # atomic: never half a file
+            with open(checkpoint, "rb") as src:
+                shutil.copyfileobj(src, tmp)
+        os.replace(tmp.name, target)
+        info = {"domain": domain, "method": "sp",
+                "checkpoint": {"file": f"{domain}/{PRETRAINED}", "sha256": sha256_file(target), "bytes": size,
+                               "shipped_from": checkpoint.name},
+                "config": payload.get("config"), "provenance": prov}
+        index = _read_index(base)
+        index["domains"][domain] = info
+        atomic_write_text(base / PRETRAINED_INDEX, json.dumps(index, indent=1) + "\n")
+    return ShippedModel(domain, target, info, "pretrained")
 
 
 def describe_totals(model: ShippedModel) -> str:

@@ -137,7 +137,8 @@ def test_init_of_another_network_domain_or_a_missing_file_is_one_line(programs, 
     first = run_root(programs, tmp_path, "first")
     pretrain(config(1), first)
     init = str(first.pretrain_dir("csg2d") / LAST)
-    other = replace(config(1, init=init), model=Architecture(**{**ARCHITECTURE, "d_model": 2 * ARCHITECTURE["d_model"]}))
+    wider = Architecture(**{**ARCHITECTURE, "d_model": 2 * ARCHITECTURE["d_model"]})
+    other = replace(config(1, init=init), model=wider)
     with pytest.raises(ConfigError, match=r"another network than pretrain.csg2d.model \(d_model"):
         pretrain(other, run_root(programs, tmp_path, "other"))
     with pytest.raises(ConfigError, match="not found"):
