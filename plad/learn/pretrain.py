@@ -337,6 +337,17 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
                **{k: round(v, 6) for k, v in final.items()},
                **({"totals": record_["totals"]} if record_ else {})}
     if dist.is_main():
+        if not last.exists() and init_payload is not None:
+            # a segment of no epochs still leaves a state to continue or ship: the one it continued, now with
+            # its record and this run's fingerprint (so that running it again changes nothing)
+            from plad.learn.loop import upgrade_state
+
+            state = init_payload.get("loop") or upgrade_state(init_payload["train_state"], "epoch")
+            keep = {k: v for k, v in init_payload.items()
+                    if k not in ("format", "domain", "tokens", "config", "state_dict", "loop", "train_state")}
+            save_checkpoint(last, model, cfg.domain, domain.tokens.names,
+                            {**keep, "loop": LoopState.from_dict(state, "epoch").new_segment(VAL_LOSS).to_dict(),
+                             "fingerprint": fingerprint, **({"provenance": record_} if record_ else {})})
         if record_ is not None:   # the selected model says what it holds too
             best = read_checkpoint(out / BEST)
             save_checkpoint(out / BEST, model, cfg.domain, domain.tokens.names,

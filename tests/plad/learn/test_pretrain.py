@@ -131,6 +131,10 @@ def test_a_zero_epoch_segment_keeps_the_continued_weights(programs, tmp_path):
     a, b = read_checkpoint(init)["state_dict"], read_checkpoint(second.pretrain_dir("csg2d") / BEST)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert summary["units"] == 1 and summary["totals"]["epochs"] == 1
+    # it leaves a state to continue or ship: the continued one, with the record of what it holds
+    last = read_checkpoint(second.pretrain_dir("csg2d") / LAST)
+    assert all(torch.equal(a[k], last["state_dict"][k]) for k in a)
+    assert last["provenance"]["totals"]["epochs"] == 1 and last["loop"]["unit"] == 1
 
 
 def test_init_of_another_network_domain_or_a_missing_file_is_one_line(programs, tmp_path):

@@ -1,0 +1,36 @@
+"""The hours-of-pretraining curve: cumulative epoch seconds against the history's metrics."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from plad.eval.pretraining import curve, main
+
+
+def write(path, rows):
+    path.write_text("epoch,val_loss,val_iou,real_val_iou,prefix_gap,epoch_seconds\n" +
+                    "".join(f"{e},{1 / e},{v},{r},0.1,{s}\n" for e, v, r, s in rows))
+    return path
+
+
+def test_curve_sums_epoch_seconds_into_hours(tmp_path):
+    c = curve(write(tmp_path / "h.csv", [(1, 0.1, 0.05, 1800), (2, 0.2, 0.1, 3600), (3, 0.3, "", 1800)]))
+    assert c["hours"] == [0.5, 1.5, 2.0] and c["epoch"] == [1, 2, 3]
+    assert c["real_val_iou"][:2] == [0.05, 0.1] and math.isnan(c["real_val_iou"][2])
+    assert c["val_iou"] == [0.1, 0.2, 0.3]
+
+
+def test_main_draws_the_png_and_prints_the_best_epoch(tmp_path, capsys):
+    h = write(tmp_path / "h.csv", [(1, 0.1, 0.05, 1800), (2, 0.2, 0.12, 1800), (3, 0.3, 0.1, 1800)])
+    assert main(["-o", str(tmp_path / "out.png"), f"run a={h}"]) == 0
+    assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert capsys.readouterr().out == "run a: 3 epochs, 1.50 h; best real_val_iou 0.1200 at epoch 2 (1.00 h)\n"
+
+
+def test_a_file_that_is_no_history_is_one_line(tmp_path, capsys):
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    assert main(["-o", str(tmp_path / "o.png"), f"x={tmp_path / 'x.csv'}"]) == 1
+    assert capsys.readouterr().err.strip().endswith("not a pretraining history (no epoch_seconds column)")
+    with pytest.raises(ValueError, match="cannot read"):
+        curve(tmp_path / "missing.csv")
