@@ -210,11 +210,12 @@ RULES: dict[str, tuple[str, Any]] = {
     **{k: _POSITIVE for k in (
         "train_programs", "val_programs", "val_metric_shapes", "batch_size", "beam", "limit", "train_limit",
         "val_limit", "threads", "max_minutes", "d_model", "n_layers", "n_heads", "dim_ff", "enc_channels",
-        "enc_kernel", "lr", "min_lr", "steps_per_epoch", "max_epochs", "infer_beam", "infer_batch",
+        "enc_kernel", "lr", "min_lr", "steps_per_epoch", "infer_beam", "infer_batch",
         "val_beam_epoch", "val_beam_round", "val_beam", "val_batch", "max_rounds", "accumulate", "latent",
         "hidden", "sample_batch", "max_sample_factor", "time_limit", "batch")},
     **{k: _NON_NEGATIVE for k in (
-        "seed", "patience", "round_patience", "lr_patience", "min_delta", "grid_shapes", "grad_clip",
+        # max_epochs 0: a continued pretraining that only takes over its checkpoint (pretrain.init)
+        "seed", "max_epochs", "patience", "round_patience", "lr_patience", "min_delta", "grid_shapes", "grad_clip",
         "kl_weight", "rounds", "po_sweeps", "tune_sweeps", "insertions")},
     "dropout": _FRACTION, "momentum": _FRACTION, "lr_factor": _OPEN_FRACTION, "baseline_alpha": _UNIT,
 }
