@@ -338,7 +338,11 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
 def describe_totals(model: ShippedModel) -> str:
     """``"<epochs> epochs, <shapes> shapes, <h> CPU h"`` of a pretrained network's provenance."""
     t = (model.info.get("provenance") or {}).get("totals") or {}
-    hours = f"{t.get('cpu_hours', 0):.1f} CPU h" + ("" if t.get("cpu_hours_complete", True) else "+")
+    hours = f"{t.get('train_seconds', 0) / 3600:.1f} h of training"
+    if t.get("cpu_hours_complete", True):
+        hours += f" ({t.get('cpu_hours', 0):.1f} CPU h)"
+    else:   # a segment written before threads were recorded
+        hours += f" ({t.get('cpu_hours', 0):.1f} CPU h recorded, some segments' threads unknown)"
     if t.get("gpu_hours"):
         hours += f", {t['gpu_hours']:.1f} GPU h"
     return f"{t.get('epochs', '?')} epochs, {t.get('shapes_seen', 0) / 1e6:.2f} M shapes, {hours}"

@@ -89,7 +89,7 @@ def test_init_shipped_continues_the_shipped_network_and_models_lists_it(trained,
     capsys.readouterr()
     assert main(["models"]) == 0
     listed = capsys.readouterr().out
-    assert "pretrained" in listed and "1 epochs, 0.00 M shapes" in listed
+    assert "pretrained" in listed and "1 epochs, 0.00 M shapes, 0.0 h of training (0.0 CPU h)" in listed
 
     root = tmp_path / "again"
     shutil.copytree(trained / "data", root / "data")
@@ -102,3 +102,26 @@ def test_init_shipped_continues_the_shipped_network_and_models_lists_it(trained,
     # with no fine-tuned network shipped, `plad infer` uses the pretrained one
     choice = resolve("csg2d")
     assert choice.kind == "shipped" and choice.path == dest / "csg2d" / PRETRAINED
+
+
+def test_the_cpu_profile_continues_the_shipped_3d_networks_and_they_verify():
+    """params.yaml (the cpu profile) resolves init to the shipped checkpoints, which match their index and
+    hold the training state and provenance a continued pretraining needs."""
+    from plad.config import build, load_params
+    from plad.domains import get_domain
+    from plad.learn.pretrain import read_init
+    from plad.model.network import ModelConfig
+    from plad.stages.pretrain import resolve_init
+    from tests.conftest import REPO_ROOT
+
+    params = load_params(REPO_ROOT / "params.yaml")
+    assert params["profile"] == "cpu"
+    for domain in ("csg3d", "shapeassembly"):
+        cfg = build(PretrainConfig, params["pretrain"][domain], f"pretrain.{domain}")
+        assert cfg.init == "shipped"
+        path = resolve_init(cfg, Layout(REPO_ROOT))
+        assert path == REPO_ROOT / "plad/shipped" / domain / PRETRAINED
+        payload = read_init(path, cfg, ModelConfig.for_domain(cfg.model, get_domain(domain)))
+        totals = payload["provenance"]["totals"]
+        assert totals["epochs"] == payload["loop"]["unit"] and totals["shapes_seen"] > 0
+        assert path.stat().st_size < 20 * 2**20
