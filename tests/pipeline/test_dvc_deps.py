@@ -36,6 +36,7 @@ from plad.layout import (
     HISTORY,
     LAST,
     METRICS,
+    PROVENANCE,
     REPORT,
     SEARCH,
     SP,
@@ -178,7 +179,8 @@ def shared_plugin_code() -> frozenset[str]:
 
 
 def is_code(path: str) -> bool:
-    return path.split("/")[0] in PACKAGES
+    """A module or package of the code; a data file inside the package (the shipped networks' index) is not."""
+    return path.split("/")[0] in PACKAGES and (path.endswith(".py") or "." not in Path(path).name)
 
 
 def covers(dep: str, path: str) -> bool:
@@ -286,8 +288,9 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "pretrain":
         out = layout.pretrain_dir(domain)
         # the prepared real shapes: the input-dependence diagnostic's real validation shapes
-        return rel([layout.synthetic(domain), layout.prepared(domain)]), \
-            rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY])
+        # and the index of the shipped pretrained networks, which `init: shipped` continues
+        return rel([layout.synthetic(domain), layout.prepared(domain), Path("plad/shipped/pretrained.json")]), \
+            rel([out / LAST, out / BEST, out / HISTORY, out / SUMMARY, out / PROVENANCE])
     if stage.group == "search_only":
         out = layout.eval_dir(SEARCH, domain)
         splits = p["search_only"][domain]["splits"]
