@@ -5,7 +5,7 @@ one file; the hours are the epochs' own seconds summed, so the time of validatio
 between segments is not) and draws one curve per run, one panel per domain::
 
     python -m plad.eval.pretraining -o docs/pretraining-hours.png \\
-        "3D CSG, 200k programs=runs/pretrain/csg3d/history.csv" ...
+        "LABEL=runs/pretrain/DOMAIN/history.csv" ...
 
 The hours are those of the process: with one thread each, CPU hours.
 """
