@@ -10,8 +10,8 @@ so ``import plad.tracking`` stays cheap):
   (resumable, nested child runs per round), and reading finished runs back;
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
   resolved to checkpoint files;
-* :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model
-  (:class:`PladPyfuncModel`), logged and loaded (:func:`plad.serve.resolve.load_pyfunc` loads
+* :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model, logged as MLflow
+  "models from code" (``plad/tracking/pyfunc_model.py``) and loaded (:func:`plad.serve.resolve.load_pyfunc` loads
   the one ``plad infer`` would use: ``--model``, the configured store's champion, the shipped one).
 """
 from __future__ import annotations
@@ -36,21 +36,20 @@ from plad.tracking.runs import (
     metric_history,
     pipeline_tags,
 )
-from plad.tracking.serving import load_checkpoint_pyfunc, load_registered, pip_requirements, pyfunc_class
+from plad.tracking.serving import legacy_pyfunc_class, load_checkpoint_pyfunc, load_registered, pip_requirements
 from plad.tracking.store import DEFAULT_EXPERIMENT, StoreError, find_experiment, open_store, tracking_uri
 
 
 def __getattr__(name: str) -> Any:
-    # ``plad.tracking.PladPyfuncModel`` is built on first access (it subclasses an
-    # mlflow class), which is also how a pickled instance finds it when loaded.
+    # ``plad.tracking.PladPyfuncModel``: the class of the models logged as pickles before models from
+    # code, found by this name when one is loaded; built on first access (it subclasses an mlflow class)
     if name == "PladPyfuncModel":
-        return pyfunc_class()
+        return legacy_pyfunc_class()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun", "StoreError",
            "champion_tags", "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri",
-           "latest_finished_run", "load_checkpoint_pyfunc", "load_registered", "metric_history", "open_store",
-           "pip_requirements",
-           "pipeline_tags",
-           "registered_models", "set_champion", "set_version_tags", "tracking_uri"]
+           "latest_finished_run", "legacy_pyfunc_class", "load_checkpoint_pyfunc", "load_registered",
+           "metric_history", "open_store", "pip_requirements", "pipeline_tags", "registered_models", "set_champion",
+           "set_version_tags", "tracking_uri"]

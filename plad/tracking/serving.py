@@ -1,12 +1,18 @@
 """A PLAD checkpoint as an MLflow pyfunc model: shapes in, programs out.
 
 :func:`log_pyfunc` logs a checkpoint as a model of the active run (and
-registers it); :func:`load_registered` loads one back. The wrapper class
-:class:`PladPyfuncModel` subclasses an ``mlflow`` class, so it is built on
-first access, and its methods import torch and the model code only then:
-``import plad.tracking`` stays cheap (``plad models`` lists the registry
-without them). Its public name is ``plad.tracking.PladPyfuncModel``, which is
-how a pickled instance finds it when a logged model is loaded.
+registers it); :func:`load_registered` loads one back. Models are logged as
+MLflow "models from code": the file ``plad/tracking/pyfunc_model.py`` is copied
+into the model and run when it is loaded (no pickled object), the checkpoint
+is the artifact ``checkpoint`` and the default beam the model config ``beam``.
+That file reaches the package through one name, :class:`Predictor` (here), so
+modules may move without breaking stored models as long as it stays importable
+as ``plad.tracking.serving.Predictor``.
+
+Models logged before (a pickled instance of ``plad.tracking.PladPyfuncModel``)
+still load: :func:`legacy_pyfunc_class` is that class, found by that name.
+Nothing here imports torch or MLflow at import time: ``import plad.tracking``
+stays cheap (``plad models`` lists the registry without them).
 """
 from __future__ import annotations
 
@@ -20,13 +26,28 @@ import numpy as np
 from plad import __version__
 from plad.tracking.store import mlflow_module, open_store
 
-#: the module that serves the wrapper class by name (see plad/tracking/__init__.py)
+#: the models-from-code file that every logged model carries (MLflow copies it into the model)
+MODEL_CODE = Path(__file__).with_name("pyfunc_model.py")
+#: the module that serves the legacy pickled class by name (see plad/tracking/__init__.py)
 PUBLIC_MODULE = "plad.tracking"
 
 
 def pip_requirements() -> list[str]:
     """Requirements of the logged pyfunc model (no environment capture: offline-safe)."""
     return ["torch", "numpy", "pandas", f"plad=={__version__}"]
+
+
+def _model_arguments(checkpoint_path: str | os.PathLike, beam: int) -> dict[str, Any]:
+    """What :func:`log_pyfunc` and :func:`load_checkpoint_pyfunc` pass to MLflow (but the destination)."""
+    from mlflow.models import ModelSignature
+    from mlflow.types import ParamSchema, ParamSpec
+
+    # a params-only signature: without it MLflow drops predict(params=...) with a warning
+    signature = ModelSignature(inputs=None, outputs=None,
+                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
+    return {"python_model": str(MODEL_CODE), "model_config": {"beam": int(beam)},
+            "artifacts": {"checkpoint": str(Path(checkpoint_path))},
+            "pip_requirements": pip_requirements(), "signature": signature}
 
 
 def log_pyfunc(checkpoint_path: str | os.PathLike, *, registered_name: str | None = None,
@@ -37,22 +58,10 @@ def log_pyfunc(checkpoint_path: str | os.PathLike, *, registered_name: str | Non
     (the model is registered under it), else the logged model's URI.
     """
     mlflow = mlflow_module()
-    from mlflow.models import ModelSignature
-    from mlflow.types import ParamSchema, ParamSpec
-
-    # a params-only signature: without it MLflow drops predict(params=...) with a warning
-    signature = ModelSignature(inputs=None, outputs=None,
-                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*input example.*")
-        info = mlflow.pyfunc.log_model(
-            name="model",
-            python_model=pyfunc_class()(beam=beam),
-            artifacts={"checkpoint": str(Path(checkpoint_path))},
-            pip_requirements=pip_requirements(),
-            signature=signature,
-            registered_model_name=registered_name,
-        )
+        info = mlflow.pyfunc.log_model(name="model", registered_model_name=registered_name,
+                                       **_model_arguments(checkpoint_path, beam))
     if registered_name:
         return f"models:/{registered_name}/{info.registered_model_version}"
     return info.model_uri
@@ -73,17 +82,10 @@ def load_checkpoint_pyfunc(checkpoint_path: str | os.PathLike, beam: int = 10) -
     import tempfile
 
     mlflow = mlflow_module()
-    from mlflow.models import ModelSignature
-    from mlflow.types import ParamSchema, ParamSpec
-
     folder = Path(tempfile.mkdtemp(prefix="plad-pyfunc-")) / "model"
-    signature = ModelSignature(inputs=None, outputs=None,
-                               params=ParamSchema([ParamSpec("beam", "long", int(beam))]))
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*input example.*")
-        mlflow.pyfunc.save_model(str(folder), python_model=pyfunc_class()(beam=beam),
-                                 artifacts={"checkpoint": str(Path(checkpoint_path))},
-                                 pip_requirements=pip_requirements(), signature=signature)
+        mlflow.pyfunc.save_model(str(folder), **_model_arguments(checkpoint_path, beam))
     return mlflow.pyfunc.load_model(str(folder))
 
 
@@ -110,22 +112,38 @@ def _stack_input(model_input: Any, shape: tuple[int, ...]) -> np.ndarray:
     return arr.astype(bool)
 
 
-def _build_pyfunc_class() -> type:
-    # mlflow, and the modules that pull in torch: imported when the class is first needed
-    import mlflow.pyfunc
-    import pandas as pd
-    import torch
+class Predictor:
+    """Shapes in, programs out: best-of-beam inference with a PLAD checkpoint; what a logged model runs.
 
-    from plad.domains import get_domain
-    from plad.model.checkpoint import load_model
-    from plad.model.decode import infer_programs
+    ``Predictor(checkpoint, beam)`` loads the checkpoint (on CUDA when present). ``predict(model_input,
+    params=None)``: ``model_input`` is a bool/uint8 array (N, *shape), one shape (*shape), a list of
+    them or a one-column DataFrame of them; returns a DataFrame with columns ``program`` (text) and
+    the domain metric's name. ``params={"beam": k}`` overrides the beam width.
 
-    def load_context(self, context):
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.model, name = load_model(context.artifacts["checkpoint"], device)
+    Stored models import this class by its name, ``plad.tracking.serving.Predictor``
+    (``plad/tracking/pyfunc_model.py``): keep that name and this interface.
+    """
+
+    #: shapes per beam search (bounds memory: beam x batch candidates are executed at once)
+    batch_size = 64
+
+    def __init__(self, checkpoint: str | os.PathLike, beam: int = 10):
+        import torch
+
+        from plad.domains import get_domain
+        from plad.model.checkpoint import load_model
+
+        # CUDA when present (as plad.device.default_device, which the stages logging models do not depend on)
+        self.model, name = load_model(checkpoint, "cuda" if torch.cuda.is_available() else "cpu")
         self.domain = get_domain(name)
+        self.beam = int(beam)
 
-    def predict(self, context, model_input, params=None):
+    def predict(self, model_input: Any, params: dict[str, Any] | None = None) -> Any:
+        import pandas as pd
+        import torch
+
+        from plad.model.decode import infer_programs
+
         beam = int((params or {}).get("beam") or self.beam)
         arr = _stack_input(model_input, tuple(self.domain.shape))
         device = next(self.model.parameters()).device
@@ -138,9 +156,22 @@ def _build_pyfunc_class() -> type:
             values += result.values.double().cpu().tolist()
         return pd.DataFrame({"program": programs, self.domain.metric.name: values})
 
-    # An ndarray hint tells MLflow not to infer a schema from the hints (the input is
-    # passed through untouched; DataFrames work too). Without any hint MLflow warns
-    # at class creation, from inside its own ``simplefilter("once")``: unfilterable.
+
+# -- models logged before models from code ---------------------------------------------------------
+def _build_legacy_class() -> type:
+    # Until models from code, a logged model was a pickled instance of this class (attributes ``beam``,
+    # ``model`` and ``domain``, the last two None), found by its public name plad.tracking.PladPyfuncModel:
+    # kept so that those models still load. It subclasses an mlflow class, so it is built on first use.
+    import mlflow.pyfunc
+
+    def load_context(self, context):
+        self.predictor = Predictor(context.artifacts["checkpoint"], self.beam)
+
+    def predict(self, context, model_input, params=None):
+        return self.predictor.predict(model_input, params)
+
+    # An ndarray hint tells MLflow not to infer a schema from the hints (the input is passed through
+    # untouched; DataFrames work too); without any hint MLflow warns, unfilterably.
     predict.__annotations__ = {"model_input": np.ndarray}
 
     def __init__(self, beam: int = 10):
@@ -148,29 +179,17 @@ def _build_pyfunc_class() -> type:
         self.model = None
         self.domain = None
 
-    namespace = {
-        "__module__": PUBLIC_MODULE,
-        "__qualname__": "PladPyfuncModel",
-        "__doc__": """Shapes in, programs out: best-of-beam inference with a PLAD checkpoint.
-
-        ``predict(context, model_input, params=None)``: ``model_input`` is a
-        bool/uint8 array (N, *shape) (or a one-column DataFrame of such
-        arrays); returns a DataFrame with columns ``program`` (text) and the
-        domain metric's name. ``params={"beam": k}`` overrides the beam width.
-        """,
-        "batch_size": 64,
-        "__init__": __init__,
-        "load_context": load_context,
-        "predict": predict,
-    }
+    namespace = {"__module__": PUBLIC_MODULE, "__qualname__": "PladPyfuncModel",
+                 "__doc__": "A PLAD model as logged before models from code (pickled); see :class:`Predictor`.",
+                 "__init__": __init__, "load_context": load_context, "predict": predict}
     return type("PladPyfuncModel", (mlflow.pyfunc.PythonModel,), namespace)
 
 
-_PYFUNC_CLASS: list[type] = []   # built once
+_LEGACY_CLASS: list[type] = []   # built once
 
 
-def pyfunc_class() -> type:
-    """The ``PladPyfuncModel`` class (built on first call)."""
-    if not _PYFUNC_CLASS:
-        _PYFUNC_CLASS.append(_build_pyfunc_class())
-    return _PYFUNC_CLASS[0]
+def legacy_pyfunc_class() -> type:
+    """``plad.tracking.PladPyfuncModel``, the class of models logged as pickles (built on first call)."""
+    if not _LEGACY_CLASS:
+        _LEGACY_CLASS.append(_build_legacy_class())
+    return _LEGACY_CLASS[0]

@@ -56,6 +56,18 @@ pytestmark = pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not 
 
 
 # -- the import closure -----------------------------------------------------------------------------
+#: modules that use another module's file without importing it: plad.tracking.serving hands MLflow the path of
+#: plad/tracking/pyfunc_model.py (a models-from-code file, copied into every logged model), so a stage that logs
+#: models depends on that file as if it imported it
+RUN_BY_PATH = {"plad.tracking.serving": ["plad.tracking.pyfunc_model"]}
+
+
+def test_the_files_run_by_path_are_those_the_modules_name():
+    from plad.tracking import serving
+
+    assert serving.MODEL_CODE == module_file(RUN_BY_PATH["plad.tracking.serving"][0])
+
+
 def module_file(name: str) -> Path | None:
     path = REPO / Path(*name.split("."))
     for candidate in (path / "__init__.py", path.with_suffix(".py")):
@@ -81,6 +93,7 @@ def closure(module: str) -> frozenset[str]:
             seen[prefix] = path
             package = prefix if path.name == "__init__.py" else prefix.rpartition(".")[0]
             todo.extend(imported_modules(path.read_text(), package))   # every import, at any depth
+            todo.extend(RUN_BY_PATH.get(prefix, []))
     return frozenset(str(p.relative_to(REPO)) for p in seen.values())
 
 

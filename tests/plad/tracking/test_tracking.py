@@ -249,7 +249,7 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys, ti
     frame = loaded.predict(pd.DataFrame({"shape": list(shapes)}))
     assert list(frame["program"]) == list(out["program"])
 
-    # a fresh process (as a server would) finds the pickled class by name and agrees
+    # a fresh process (as a server would) loads the model from its code and agrees
     np.save(tmp_path / "shapes.npy", shapes)
     script = textwrap.dedent(f"""
         import json, numpy as np
@@ -261,6 +261,75 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys, ti
                            text=True, env=os.environ.copy())
     assert fresh.returncode == 0, fresh.stderr
     assert json.loads(fresh.stdout.strip().splitlines()[-1]) == list(out["program"])
+
+
+#: load a pyfunc model and predict, in a process of its own that has imported nothing of plad
+FRESH_PREDICT = """
+import json, sys
+import mlflow.pyfunc, numpy as np
+out = mlflow.pyfunc.load_model(sys.argv[1]).predict(np.load(sys.argv[2]))
+print(json.dumps({"program": list(out["program"]), "value": [float(v) for v in out.iloc[:, 1]]}))
+"""
+
+
+def predict_in_fresh_process(uri: str, shapes: np.ndarray, folder) -> dict:
+    np.save(folder / "shapes.npy", shapes)
+    fresh = subprocess.run([sys.executable, "-c", FRESH_PREDICT, uri, str(folder / "shapes.npy")], cwd=REPO_ROOT,
+                           capture_output=True, text=True, env=os.environ.copy())
+    assert fresh.returncode == 0, fresh.stderr[-3000:]
+    return json.loads(fresh.stdout.strip().splitlines()[-1])
+
+
+def test_a_logged_model_is_code_and_loads_in_a_fresh_process(store, tmp_path, tiny_checkpoint):
+    """Models from code: the logged model holds ``pyfunc_model.py`` (which reaches the package through
+    ``plad.tracking.serving.Predictor`` alone), no pickle; a new process loads it by its URI and predicts
+    what the checkpoint predicts."""
+    import ast
+
+    import mlflow
+    import yaml
+
+    from plad.tracking.serving import Predictor
+
+    ckpt = tiny_checkpoint(tmp_path / "model.pt", "csg3d", seed=1)
+    with StageRun("finetune", "csg3d", {}, tmp_path / "run", method="plad") as run:
+        uri = run.log_model(ckpt, beam=2)
+    local = tmp_path / "downloaded"
+    mlflow.artifacts.download_artifacts(uri, dst_path=str(local))
+    flavor = yaml.safe_load((local / "MLmodel").read_text())["flavors"]["python_function"]
+    assert flavor["loader_module"] == "mlflow.pyfunc.loaders.code_model" and flavor["config"] == {"beam": 2}
+    assert "python_model" not in flavor and not (local / "python_model.pkl").exists()
+    code = (local / "pyfunc_model.py").read_text()
+    imported = {node.module for node in ast.walk(ast.parse(code)) if isinstance(node, ast.ImportFrom)}
+    assert {m for m in imported if m.split(".")[0] == "plad"} == {"plad.tracking.serving"}
+
+    shapes = np.random.default_rng(1).random((2, 32, 32, 32)) < 0.2
+    expected = Predictor(ckpt, beam=2).predict(shapes)
+    got = predict_in_fresh_process(uri, shapes, tmp_path)
+    assert got["program"] == list(expected["program"])
+    np.testing.assert_allclose(got["value"], expected["iou"].to_numpy(), rtol=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:.*An input example was not provided")
+def test_a_model_logged_as_a_pickle_still_loads(store, tmp_path, tiny_checkpoint):
+    """Models logged before models from code are a pickled ``plad.tracking.PladPyfuncModel`` (by reference:
+    its name and its attributes); the same pickle, made here by MLflow as it was then, still loads."""
+    import mlflow
+
+    from plad.tracking.serving import Predictor, _model_arguments
+
+    ckpt = tiny_checkpoint(tmp_path / "model.pt", "csg2d", seed=2)
+    old = tmp_path / "old-model"
+    arguments = _model_arguments(ckpt, beam=3)    # as logged then: no model config, the instance itself
+    del arguments["model_config"]
+    mlflow.pyfunc.save_model(str(old), **{**arguments, "python_model": tracking.PladPyfuncModel(beam=3)})
+    pickled = (old / "python_model.pkl").read_bytes()
+    assert b"plad.tracking" in pickled and b"PladPyfuncModel" in pickled and b"load_context" not in pickled
+    shapes = np.random.default_rng(2).random((3, 64, 64)) < 0.3
+    expected = Predictor(ckpt, beam=3).predict(shapes)
+    got = predict_in_fresh_process(str(old), shapes, tmp_path)
+    assert got["program"] == list(expected["program"])
+    np.testing.assert_allclose(got["value"], expected["chamfer"].to_numpy(), rtol=1e-6)
 
 
 def test_a_stage_records_the_params_file_it_read(store, client, tmp_path, monkeypatch, tiny_checkpoint):
