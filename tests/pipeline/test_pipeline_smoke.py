@@ -7,11 +7,8 @@ applied to the copy's workspace so that the tests below can read its outputs.
 """
 import json
 import os
-import re
 import shutil
 import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -45,24 +42,10 @@ def smoke_run(tmp_path_factory, datasets_dir):
            "MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}", "GIT_AUTHOR_NAME": "t",
            "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
     env.pop("PLAD_PIPELINE_ID", None)
-    # the warm runner (docs/performance.md): stage commands forked from one server with torch and MLflow imported
-    # (about 3 s of CPU saved per stage); its own socket folder, and a short idle time so that it ends
-    # soon after the run and reports what it served
-    warm = tmp_path_factory.mktemp("warm")
-    shim = run([sys.executable, "-m", "plad.warm", "shim", str(warm / "bin")], REPO_ROOT, env).stdout.strip()
-    env.update(PATH=f"{os.path.dirname(shim)}{os.pathsep}{env['PATH']}", PLAD_WARM_DIR=str(warm / "sock"),
-               PLAD_WARM_IDLE="20")
     run(["git", "init", "-q"], work, env)
     run(["git", "add", "-A"], work, env)
     run(["git", "commit", "-q", "-m", "the project"], work, env)
     res = run(["dvc", "exp", "run", "--temp", "-S", "profile=smoke", "-n", "smoke"], work, env)
-    deadline = time.monotonic() + 60
-    while list((warm / "sock").glob("*.sock")) and time.monotonic() < deadline:   # the server's idle exit
-        time.sleep(0.5)
-    log = "".join(f.read_text() for f in (warm / "sock").glob("*.log"))
-    served = sum(int(n) for n in re.findall(r"plad\.warm: exiting after (\d+) requests", log))
-    # every stage command went warm (the stages: about 40), none fell back to a cold start with a warning
-    assert served >= 30 and "plad.warm:" not in res.stdout + res.stderr, log
     status = run(["git", "status", "--porcelain"], work, env).stdout
     run(["dvc", "exp", "apply", "smoke"], work, env)
     return work, env, res, status
