@@ -22,6 +22,16 @@ def layout(tmp_path_factory, datasets_dir):
     return Layout(root)
 
 
+@pytest.fixture
+def swap_pretrained(layout):
+    """``swap_pretrained()`` replaces the module's pretrained model (the tiny one, seed 0) by another (seed 5);
+    the module's model is put back after the test, whether it passed or failed."""
+    sp = layout.model("csg2d", "sp")
+    original = sp.read_bytes()
+    yield lambda: tiny_checkpoint(sp, "csg2d", seed=5)
+    sp.write_bytes(original)
+
+
 def config(key: str, stage_minutes, method_minutes) -> FinetuneStageConfig:
     plad = RoundsConfig(infer_beam=1, infer_batch=8, val_beam_epoch=1, val_beam_round=1, max_rounds=3,
                         train=TrainConfig(batch_size=4, steps_per_epoch=2, max_epochs=1))
@@ -40,7 +50,7 @@ def test_the_method_budget_replaces_the_stage_budget(layout):
     assert json.loads(layout.finetune_summary("csg2d", "long").read_text())["max_minutes"] == 60
 
 
-def test_a_run_folder_started_from_another_model_is_started_over_not_resumed(layout, capsys):
+def test_a_run_folder_started_from_another_model_is_started_over_not_resumed(layout, swap_pretrained, capsys):
     cfg = config("origin", stage_minutes=None, method_minutes=None)
     cfg.plad.max_rounds = 1
     first = finetune_stage(cfg, layout)
@@ -48,10 +58,8 @@ def test_a_run_folder_started_from_another_model_is_started_over_not_resumed(lay
     cfg.plad.max_rounds = 2     # more rounds: the same run continues
     assert finetune_stage(cfg, layout)["units"] == 2
     assert "resuming from round 2" in capsys.readouterr().err
-    sp = layout.model("csg2d", "sp")
-    tiny_checkpoint(sp, "csg2d", seed=5)          # another pretrained model: the old rounds are void
+    swap_pretrained()                             # another pretrained model: the old rounds are void
     again = finetune_stage(cfg, layout)
     err = capsys.readouterr().err
     assert "not resuming" in err and "model_sha256 changed" in err and "resuming from" not in err
     assert again["units"] == 2
-    tiny_checkpoint(sp, "csg2d")                  # the module's other tests expect the first model
