@@ -5,10 +5,12 @@ also when it fails; :func:`new_children` then checks that nothing is left.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -18,6 +20,9 @@ import psutil
 REPO_ROOT = Path(__file__).resolve().parent.parent
 #: process groups started through :func:`start` (a group's id is its leader's pid)
 STARTED: set[int] = set()
+#: the torchrun entry point of :func:`launch`, run as a module (torchrun -m): as a script, its folder tests/
+#: would come first on sys.path, where tests/plad/ would shadow the package plad
+WORKER = "tests.distributed_worker"
 
 
 def child_env(**extra: str) -> dict[str, str]:
@@ -128,3 +133,19 @@ def left_behind(before: set[int]) -> list[str]:
     for leader in STARTED - before:
         out += [m for m in group(leader) if m not in out]
     return out
+
+
+def launch(tmp: Path, name: str, commands: list[list[str]]) -> list[list[dict]]:
+    """One ``torchrun --nproc-per-node 2`` running the stage commands in turn (in ``tmp``, MLflow store
+    ``tmp/mlflow.db``; :data:`WORKER` records each rank's steps and writes); per command, the records of
+    rank 0 and rank 1."""
+    records = tmp / f"records-{name}"
+    records.mkdir()
+    log = tmp / f"{name}.log"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", WORKER, str(records), *" :: ".join(" ".join(c) for c in commands).split(" ")]
+    env = child_env(PLAD_TEST_WATCH=str(tmp), MLFLOW_TRACKING_URI=f"sqlite:///{tmp / 'mlflow.db'}")
+    status = run(cmd, env, log, timeout=300, cwd=tmp)
+    assert status == 0, tail(log)
+    ranks = [json.loads((records / f"rank{r}.json").read_text()) for r in (0, 1)]
+    return [list(pair) for pair in zip(*ranks)]

@@ -43,6 +43,18 @@ def tiny_checkpoint(path: Path, domain: str = "csg2d", seed: int = 0, **override
     return save_checkpoint(path, tiny_model(domain, seed, **overrides), domain, get_domain(domain).tokens.names)
 
 
+def tiny_pretrain_params(path: Path) -> None:
+    """A params file at ``path`` that pretrains the tiny architecture on 2D CSG in seconds (2 epochs of 4
+    steps, batch 8, one thread, on the CPU)."""
+    import json
+
+    model = {**ARCHITECTURE, "dropout": 0.1, "enc_channels": list(ARCHITECTURE["enc_channels"])}
+    block = {"device": "cpu", "threads": 1, "seed": 0, "val_metric_shapes": 8, "max_minutes": None, "model": model,
+             "train": {"batch_size": 8, "lr": 0.001, "steps_per_epoch": 4, "max_epochs": 2, "patience": 5,
+                       "min_delta": 0.001, "lr_patience": 0, "lr_factor": 0.5, "grad_clip": 1.0}}
+    path.write_text(json.dumps({"pretrain": {"base": block, "csg2d": {}}}))
+
+
 def csg2d_inputs(root: Path, datasets_dir: Path) -> Path:
     """A project at layout root ``root`` (:mod:`plad.layout`) ready to fine-tune: the real 2D shapes prepared
     and, as the pretrained model, the tiny one (seed 0); ``root``."""

@@ -47,7 +47,7 @@ from plad.layout import (
     programs_csv,
 )
 from tests.conftest import REPO_ROOT
-from tests.plad.domains.test_plugin_boundary import imported_modules
+from tests.imports import imported_modules
 
 REPO = REPO_ROOT
 PACKAGES = ("plad", "flows")   # where the project's code lives; anything else is a third-party import

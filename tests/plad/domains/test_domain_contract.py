@@ -7,6 +7,7 @@ from plad.domains import domain_names, get_domain
 from plad.domains.base import pad_programs
 from plad.domains.grammar import ProgramError
 from plad.metrics import Metric
+from tests.grammar import masked_rollouts
 
 DOMAINS = domain_names()
 
@@ -14,28 +15,6 @@ DOMAINS = domain_names()
 @pytest.fixture(scope="module", params=DOMAINS)
 def domain(request):
     return get_domain(request.param)
-
-
-def masked_rollouts(domain, n: int, seed: int) -> list[list[int]]:
-    """Uniformly random decoding under the grammar mask, all rows in one batch."""
-    table = domain.tokens
-    gen = torch.Generator().manual_seed(seed)
-    state = table.initial_state(n)
-    out = [[] for _ in range(n)]
-    for _ in range(table.max_len):
-        mask = table.mask(state)
-        live = ~state.done
-        if not live.any():
-            break
-        # a live row must always have a way forward: the mask is never a dead end
-        assert mask[live].any(dim=1).all()
-        probs = mask.float() + (~live).float()[:, None] * 1e-9  # finished rows draw anything, ignored
-        tok = torch.multinomial(probs, 1, generator=gen)[:, 0]
-        for i in torch.nonzero(live).flatten().tolist():
-            out[i].append(int(tok[i]))
-        state = table.advance(state, tok)
-    assert state.done.all(), "masked decoding must finish within the length cap"
-    return out
 
 
 def test_masked_decoding_always_yields_valid_programs(domain):

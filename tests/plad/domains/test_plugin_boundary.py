@@ -3,31 +3,15 @@
 Everything specific to a domain sits behind plad.domains.base.Domain; the
 registry (plad/domains/__init__.py) is the one place that lists the domains.
 """
-import ast
 import re
 from pathlib import Path
 
 from plad.domains import _REGISTRY, domain_names
 from tests.conftest import REPO_ROOT
+from tests.imports import imported_modules
 
 PLAD = REPO_ROOT / "plad"
 DOMAINS_DIR = PLAD / "domains"
-
-
-def imported_modules(source: str, package: str) -> set[str]:
-    """Absolute names of the modules ``source`` (a module of ``package``) imports, at any depth."""
-    out = set()
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:   # relative: "." is the package itself, ".." its parent, ...
-                parts = package.split(".")[:len(package.split(".")) - node.level + 1]
-                base = ".".join(parts + ([node.module] if node.module else []))
-            out.add(base)
-            out.update(f"{base}.{a.name}" for a in node.names)   # "from pkg import module"
-    return out
 
 
 def package_of(path: Path) -> str:

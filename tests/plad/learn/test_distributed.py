@@ -9,37 +9,16 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import sys
 
 import numpy as np
 import pytest
 import torch
 
 from plad.layout import BEST, HISTORY, LAST, STATE, SUMMARY, Layout
-from tests.procs import child_env, children, left_behind, run, tail
-from tests.tiny import ARCHITECTURE, csg2d_inputs
+from tests.procs import children, launch, left_behind
+from tests.tiny import csg2d_inputs, tiny_pretrain_params
 
 pytestmark = pytest.mark.integration
-
-# run as a module (torchrun -m): as a script, its folder tests/ would come first on sys.path, where
-# tests/plad/ (this folder) would shadow the package plad
-WORKER = "tests.distributed_worker"
-MODEL = {**ARCHITECTURE, "dropout": 0.1, "enc_channels": list(ARCHITECTURE["enc_channels"])}
-
-
-def launch(tmp, name: str, commands: list[list[str]]) -> list[list[dict]]:
-    """One ``torchrun --nproc-per-node 2`` running the stage commands in turn (in ``tmp``, MLflow store
-    ``tmp/mlflow.db``); per command, the records of rank 0 and rank 1."""
-    records = tmp / f"records-{name}"
-    records.mkdir()
-    log = tmp / f"{name}.log"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", WORKER, str(records), *" :: ".join(" ".join(c) for c in commands).split(" ")]
-    env = child_env(PLAD_TEST_WATCH=str(tmp), MLFLOW_TRACKING_URI=f"sqlite:///{tmp / 'mlflow.db'}")
-    status = run(cmd, env, log, timeout=300, cwd=tmp)
-    assert status == 0, tail(log)
-    ranks = [json.loads((records / f"rank{r}.json").read_text()) for r in (0, 1)]
-    return [list(pair) for pair in zip(*ranks)]
 
 
 def written(record: dict, root) -> set[str]:
@@ -51,30 +30,13 @@ def mlflow_runs(db) -> list[str]:
         return [r[0] for r in c.execute("select name from runs order by start_time")]
 
 
-@pytest.fixture(scope="module")
-def synthetic(tmp_path_factory):
-    """The layout folder of a few synthetic 2D programs (``data/synthetic`` of a layout root)."""
-    from plad.stages.synthesize import SynthesizeConfig, synthesize
-
-    root = tmp_path_factory.mktemp("synthetic")
-    synthesize(SynthesizeConfig(domain="csg2d", train_programs=600, val_programs=32, seed=0), Layout(root))
-    return Layout(root).synthetic_dir
-
-
-def pretrain_params(path) -> None:
-    block = {"device": "cpu", "threads": 1, "seed": 0, "val_metric_shapes": 8, "max_minutes": None, "model": MODEL,
-             "train": {"batch_size": 8, "lr": 0.001, "steps_per_epoch": 4, "max_epochs": 2, "patience": 5,
-                       "min_delta": 0.001, "lr_patience": 0, "lr_factor": 0.5, "grad_clip": 1.0}}
-    path.write_text(json.dumps({"pretrain": {"base": block, "csg2d": {}}}))
-
-
 def state(path) -> dict[str, torch.Tensor]:
     return torch.load(path, weights_only=False)["state_dict"]
 
 
 def test_two_process_pretraining_keeps_ranks_equal_writes_once_and_resumes(tmp_path, synthetic):
     before = children()
-    pretrain_params(tmp_path / "params.yaml")
+    tiny_pretrain_params(tmp_path / "params.yaml")
     straight, resumed = Layout(tmp_path / "straight"), Layout(tmp_path / "resumed")
     for layout in (straight, resumed):   # both runs train on the same synthetic programs
         layout.synthetic_dir.parent.mkdir(parents=True)

@@ -1,19 +1,22 @@
 """Pretraining with the curriculum under torchrun (2 CPU processes): equal ranks, and a resume in its stage."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from plad.layout import HISTORY, LAST, Layout
-from tests.plad.learn.test_distributed import launch, pretrain_params, pytestmark, synthetic  # noqa: F401 (fixture)
-from tests.procs import children, left_behind
+from tests.procs import children, launch, left_behind
+from tests.tiny import tiny_pretrain_params
+
+pytestmark = pytest.mark.integration
 
 CURRICULUM = ["curriculum.enabled=true", "curriculum.stages=[2]", "curriculum.stage_steps=4",
               "curriculum.replay=0.5", "train.warmup_steps=3", "model.prefix_bos=true", "model.enc_init=kaiming"]
 
 
-def test_two_process_curriculum_keeps_ranks_equal_and_resumes_in_its_stage(tmp_path, synthetic):  # noqa: F811
+def test_two_process_curriculum_keeps_ranks_equal_and_resumes_in_its_stage(tmp_path, synthetic):
     before = children()
-    pretrain_params(tmp_path / "params.yaml")
+    tiny_pretrain_params(tmp_path / "params.yaml")
     straight, resumed = Layout(tmp_path / "straight"), Layout(tmp_path / "resumed")
     for layout in (straight, resumed):
         layout.synthetic_dir.parent.mkdir(parents=True)

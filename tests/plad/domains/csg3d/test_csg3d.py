@@ -7,7 +7,7 @@ from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.domains.csg3d.executor import Executor, pack, render_primitives, unpack
 from plad.domains.grammar import ProgramError
-from tests.plad.domains.test_domain_contract import masked_rollouts
+from tests.grammar import masked_rollouts
 from tests.reference.csg3d_render import render
 
 DOMAIN = get_domain("csg3d")
