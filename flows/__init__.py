@@ -24,3 +24,22 @@ PREFECT_DEFAULTS = {
 }
 for _key, _value in PREFECT_DEFAULTS.items():
     os.environ.setdefault(_key, _value)
+
+
+def one_line_errors() -> None:
+    """Prefect logs a failing flow's or task's exception with its traceback; for an error a user can fix
+    (:class:`plad.errors.PladError`: a params, data or checkpoint problem) the command prints it as one line
+    anyway (:func:`plad.errors.run_guarded`), so Prefect keeps only its message line for those."""
+    import logging
+
+    from plad.errors import PladError
+
+    def drop_traceback(record: logging.LogRecord) -> bool:
+        if record.exc_info and isinstance(record.exc_info[1], PladError):
+            record.exc_info, record.exc_text = None, None
+        return True
+
+    for name in ("prefect.flow_runs", "prefect.task_runs"):
+        logger = logging.getLogger(name)
+        if drop_traceback.__qualname__ not in {getattr(f, "__qualname__", "") for f in logger.filters}:
+            logger.addFilter(drop_traceback)

@@ -29,6 +29,7 @@ import numpy as np
 from prefect import flow, task
 from prefect.cache_policies import NONE
 
+from flows import one_line_errors
 from plad.config import ConfigError, load_params, section
 from plad.errors import run_guarded
 from plad.layout import SP, Layout
@@ -180,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--serve needs a running Prefect server: start `prefect server start` and set "
                          'PREFECT_API_URL=http://127.0.0.1:4200/api (docs/pipeline.md, "Periodic retraining")')
 
+    one_line_errors()
+
     def go() -> None:
+        # a bad params file or profile is one line before Prefect starts its server
+        run_configs(load_params(args.params, profile=args.profile), args.params)
         if args.serve:
             from prefect import serve
 

@@ -14,6 +14,7 @@ import sys
 
 from prefect import flow, task
 
+from flows import one_line_errors
 from plad.config import load_params, section
 from plad.errors import run_guarded
 from plad.layout import Layout
@@ -43,5 +44,11 @@ if __name__ == "__main__":
     parser.add_argument("--root", default=".",
                         help="root folder of the artifacts (plad.layout; default: the working directory)")
     args = parser.parse_args()
+    one_line_errors()
+
+    def go() -> None:
+        section(load_params(args.params), "prepare", PrepareConfig)   # a bad params file: before Prefect starts
+        print(prepare_data(args.params, args.root))
+
     # the exit statuses of plad.errors: a params or data problem is one line and status 1
-    sys.exit(run_guarded("flows.prepare_data", lambda: print(prepare_data(args.params, args.root))))
+    sys.exit(run_guarded("flows.prepare_data", go))

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import numbers
 import os
+import re
 import types
 import typing
 from pathlib import Path
@@ -88,11 +90,66 @@ class Params(dict):
         return str(self.path)
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+#: the most YAML nodes a params or profile file may expand to, anchors and aliases followed: params.yaml has
+#: about 800; a file whose aliases nest into millions ("billion laughs") is refused before it is built
+MAX_YAML_NODES = 100_000
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, int], open_: set[int]) -> int:
+    """The number of nodes ``node`` stands for with every alias expanded (memoized per node: an alias is the
+    very node its anchor names, so this takes one visit per distinct node however deep the nesting)."""
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in open_:
+        raise ValueError("an alias refers to a node that holds it (a recursive structure)")
+    open_.add(key)
+    if isinstance(node, yaml.SequenceNode):
+        children = node.value
+    elif isinstance(node, yaml.MappingNode):
+        children = [n for pair in node.value for n in pair]
+    else:
+        children = []
+    total = 1
+    for child in children:
+        total += _expanded_size(child, sizes, open_)
+        if total > MAX_YAML_NODES:
+            break
+    open_.discard(key)
+    sizes[key] = total
+    return total
+
+
+def safe_yaml(text: str) -> Any:
+    """``yaml.safe_load(text)``, refusing (``ValueError``) a document whose aliases expand beyond
+    :data:`MAX_YAML_NODES` nodes or hold themselves: checked on the composed nodes, before anything is built."""
+    loader = yaml.SafeLoader(text)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node, {}, set())
+        if size > MAX_YAML_NODES:
+            raise ValueError(f"its anchors and aliases expand to more than {MAX_YAML_NODES:,} values (an alias "
+                             f"bomb?); write the values out")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ConfigError(f"{path}: not a file" if path.exists() else f"{path}: no such params file")
+    try:
+        data = safe_yaml(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (YAML is UTF-8 text)") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read ({err.strerror or err.__class__.__name__})") from None
+    except (ValueError, RecursionError) as err:
+        raise ConfigError(f"{path}: refused: {' '.join(str(err).split()) or 'nested too deeply'}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level")
     return data
@@ -162,8 +219,6 @@ def load_params(path: str | os.PathLike = "params.yaml", profile: str | None = N
     ``profile`` replaces the file's own ``profile`` key (as ``dvc exp run -S profile=...`` would).
     """
     path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"{path}: no such params file")
     data = _read_yaml(path)
     if profile is not None:
         data["profile"] = profile
@@ -197,28 +252,51 @@ def load_params(path: str | os.PathLike = "params.yaml", profile: str | None = N
     return Params(out, path, ppath, frozenset(touched))
 
 
+# ---- beams ------------------------------------------------------------------------------------------
+#: the widest beam any command or stage searches with: the beam's rows (shapes x beam) and their decoder
+#: caches grow with it, and a beam of a billion would only fail deep inside torch. The paper uses 10.
+MAX_BEAM = 100
+#: rows (shapes x beam) of one beam search call of ``plad infer`` and the pyfunc model: shapes are batched
+#: by ``max(1, MAX_BEAM_ROWS // beam)``, so that the memory is bounded whatever the beam
+MAX_BEAM_ROWS = 256
+
+
+def check_beam(beam: object) -> int:
+    """``beam`` as a beam width: an integer (NumPy's too) in [1, :data:`MAX_BEAM`], else ``ValueError``."""
+    if isinstance(beam, bool) or not isinstance(beam, numbers.Integral) or not 1 <= int(beam) <= MAX_BEAM:
+        raise ValueError(f"a beam width is an integer from 1 to {MAX_BEAM} (MAX_BEAM), got {beam!r}")
+    return int(beam)
+
+
 # ---- value rules --------------------------------------------------------------------------------
 # One table for every component's config: a key of that name holding a number (or a list of numbers)
 # must satisfy the rule. Relations between keys (e.g. n_heads dividing d_model) are checked by the
 # config class itself (``__post_init__`` raising ValueError), and reported by :func:`build` with the key.
 _POSITIVE = ("must be positive", lambda v: v > 0)
+_BEAM = (f"must be a beam width from 1 to {MAX_BEAM} (MAX_BEAM)", lambda v: 1 <= v <= MAX_BEAM)
 _NON_NEGATIVE = ("must be non-negative", lambda v: v >= 0)
 _FRACTION = ("must be in [0, 1)", lambda v: 0 <= v < 1)
 _OPEN_FRACTION = ("must be in (0, 1)", lambda v: 0 < v < 1)
 _UNIT = ("must be in [0, 1]", lambda v: 0 <= v <= 1)
 RULES: dict[str, tuple[str, Any]] = {
     **{k: _POSITIVE for k in (
-        "train_programs", "val_programs", "val_metric_shapes", "batch_size", "beam", "limit", "train_limit",
+        "train_programs", "val_programs", "val_metric_shapes", "batch_size", "limit", "train_limit",
         "val_limit", "threads", "max_minutes", "d_model", "n_layers", "n_heads", "dim_ff", "enc_channels",
-        "enc_kernel", "lr", "min_lr", "steps_per_epoch", "infer_beam", "infer_batch",
-        "val_beam_epoch", "val_beam_round", "val_beam", "val_batch", "max_rounds", "accumulate", "latent",
+        "enc_kernel", "lr", "min_lr", "steps_per_epoch", "infer_batch",
+        "val_batch", "max_rounds", "accumulate", "latent",
         "hidden", "sample_batch", "max_sample_factor", "time_limit", "batch")},
     **{k: _NON_NEGATIVE for k in (
         # max_epochs 0: a continued pretraining that only takes over its checkpoint (pretrain.init)
         "seed", "max_epochs", "patience", "round_patience", "lr_patience", "min_delta", "grid_shapes", "grad_clip",
         "kl_weight", "rounds", "po_sweeps", "tune_sweeps", "insertions")},
+    **{k: _BEAM for k in ("beam", "beams", "sweep_beam", "infer_beam", "val_beam_epoch", "val_beam_round",
+                          "val_beam")},
     "dropout": _FRACTION, "momentum": _FRACTION, "lr_factor": _OPEN_FRACTION, "baseline_alpha": _UNIT,
 }
+
+
+#: the devices a config may name (plad.device.resolve_device)
+DEVICE_NAMES = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
 def _number(value: Any) -> bool:
@@ -227,6 +305,11 @@ def _number(value: Any) -> bool:
 
 def _check_value(key: str, value: Any, where: str, source: str) -> None:
     """The :data:`RULES` of ``key``, and a known domain for ``domain``/``domains``; ConfigError naming the key."""
+    if key == "device" and isinstance(value, str):
+        if not DEVICE_NAMES.fullmatch(value):
+            raise ConfigError(f"{source}: {where}.device = {value!r}: use auto (CUDA when present), cpu, cuda or "
+                              f"cuda:N")
+        return
     if key in ("domain", "domains") and value is not None:
         from plad.domains import domain_names
 
@@ -351,7 +434,9 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str], where: str) -> di
                 node[p] = {}
             node = node[p]
         try:
-            node[parts[-1]] = yaml.safe_load(text) if text.strip() else None
+            node[parts[-1]] = safe_yaml(text) if text.strip() else None
         except yaml.YAMLError:
             raise ConfigError(f"--set {item!r}: value is not valid YAML") from None
+        except (ValueError, RecursionError) as err:
+            raise ConfigError(f"--set {item!r}: refused: {' '.join(str(err).split())}") from None
     return out

@@ -12,9 +12,12 @@ def default_device() -> torch.device:
 
 
 def resolve_device(name: str) -> torch.device:
-    """A params value: "auto" (CUDA when present), "cpu" or "cuda"."""
+    """A params value: "auto" (CUDA when present), "cpu", "cuda" or "cuda:N"."""
     if name == "auto":
         return default_device()
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: cuda was requested but no CUDA device is available")
-    return torch.device(name)
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device: {name} was requested but no CUDA device is available")
+    try:
+        return torch.device(name)
+    except RuntimeError:   # a name torch does not know, e.g. "tpu" (params checks it first: plad.config)
+        raise ConfigError(f"device: {name!r} is not a device; use auto, cpu, cuda or cuda:N") from None

@@ -2,12 +2,17 @@
 
 * 0 (:data:`OK`): the command did what was asked;
 * 1 (:data:`FAILURE`): the run or its data failed: a missing or damaged
-  dataset, checkpoint or MLflow store, a params file with a bad key or value,
-  a stage whose inputs are not there yet;
-* 2 (:data:`USAGE`): bad usage or input: a command-line argument, a program
-  text, an input file given on the command line (argparse uses 2 as well).
-  A command that processes several inputs (``plad infer`` on a folder) writes
-  every good result and then exits 2 when any input was refused.
+  dataset, a model that cannot be found or used (a checkpoint given with
+  ``--model`` or shipped, an MLflow model URI, no model at all), an MLflow
+  store that cannot be reached, a params file with a bad key or value, a stage
+  whose inputs are not there yet;
+* 2 (:data:`USAGE`): bad usage or input: a command-line argument (a beam out of
+  range, an output path that cannot be written), a program text, a shape given
+  on the command line (argparse uses 2 as well). A command that processes
+  several shapes (``plad infer`` on a folder, ``plad search`` or ``score`` on a
+  batch) writes every good result and then exits 2 when any shape was refused.
+
+This is the one place the convention is written; the commands' documentation refers here.
 
 Each error class a user can cause derives from :class:`RunFailure` or
 :class:`BadInput` and so carries its status; :func:`run_guarded` is where the

@@ -177,22 +177,50 @@ class Domain(abc.ABC):
             return "\n".join("".join("#" if v else "." for v in row) for row in grid) + "\n" + self.format(ids)
         return f"{self.format(ids)}: {int(grid.sum())} of {grid.size} cells occupied"
 
-    #: formats of ``plad export`` (program text -> another tool's file), e.g. ``("scad",)``; default: none
+    #: formats of a program's files in other tools, by suffix (e.g. ``("svg",)``, ``("ply", "scad")``): what
+    #: ``plad export`` writes and what ``plad infer`` writes beside each program (:meth:`export_files`);
+    #: default: none
     export_formats: tuple[str, ...] = ()
 
-    def export_text(self, text: str, fmt: str) -> str:
-        """``plad export``: program text -> the text of a file in format ``fmt`` (one of :attr:`export_formats`).
+    def write_export(self, ids: Sequence[int], fmt: str, path: Path) -> bool:
+        """Write the valid program ``ids`` in format ``fmt`` (one of :attr:`export_formats`) to ``path``.
 
+        Returns False when the program has nothing to write in that format (e.g. no surface for a mesh).
         Raises ``ValueError`` for a format the domain does not offer (the default offers none).
         """
+        raise ValueError(self._unknown_format(fmt))
+
+    def _unknown_format(self, fmt: str) -> str:
         known = ", ".join(self.export_formats) or "none"
-        raise ValueError(f"unknown export format {fmt!r} for {self.name}; known: {known}")
+        return f"unknown export format {fmt!r} for {self.name}; known: {known}"
+
+    def export_program(self, text: str, fmt: str, path: Path) -> bool:
+        """``plad export``: program text -> a file of format ``fmt`` at ``path`` (:meth:`write_export`).
+
+        Raises :class:`ProgramError` for a bad program, ``ValueError`` for an unknown format.
+        """
+        if fmt not in self.export_formats:
+            raise ValueError(self._unknown_format(fmt))
+        return self.write_export(self.parse(text), fmt, Path(path))
+
+    def export_text(self, text: str, fmt: str) -> bytes:
+        """The bytes of :meth:`export_program`'s file (empty when there is nothing to write)."""
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="plad-export-") as tmp:
+            path = Path(tmp) / f"program.{fmt}"
+            return path.read_bytes() if self.export_program(text, fmt, path) else b""
 
     # -- outputs of inferred programs ------------------------------------------------------------
     def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
-        """Write files that carry the valid program ``ids`` into other tools, named ``stem`` plus a
-        suffix (e.g. ``.svg``, ``.ply``, ``.scad``); return their paths. Default: none."""
-        return []
+        """Write the valid program ``ids`` in every format of :attr:`export_formats`, named ``stem`` plus the
+        format's suffix (e.g. ``.svg``); return the paths written."""
+        out = []
+        for fmt in self.export_formats:
+            path = Path(f"{stem}.{fmt}")
+            if self.write_export(ids, fmt, path):
+                out.append(path)
+        return out
 
 
 def save_grid(grid: np.ndarray, path: Path) -> None:

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from plad.domains import get_domain
-from plad.errors import RunFailure
+from plad.errors import RunFailure, one_line
 from plad.fsutil import atomic_write
 from plad.model.network import ModelConfig, PLADNet
 
@@ -98,20 +98,93 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return payload
 
 
-def load_model(path: str | os.PathLike, device: str | torch.device = "cpu",
-               expect_domain: str | None = None) -> tuple[PLADNet, str]:
-    """(model in eval mode on ``device``, domain name) from a checkpoint file."""
-    payload = read_checkpoint(path)
+#: the largest network a checkpoint may declare (parameters): the project's are a few million; a config
+#: declaring more (e.g. 17 GB of weights) is refused before anything is allocated
+MAX_PARAMETERS = 200_000_000
+#: the most encoder blocks plus decoder layers a checkpoint may declare (each is a module to build)
+MAX_BLOCKS = 64
+
+
+def _estimate(cfg: ModelConfig) -> int:
+    """An estimate of the network's parameter count from its config alone (no module is built)."""
+    dims = len(cfg.input_shape)
+    kernel = (cfg.enc_kernel or (3 if dims == 2 else 4)) ** dims
+    channels = [1 + dims, *cfg.enc_channels]
+    convs = sum(a * b * kernel for a, b in zip(channels, channels[1:]))
+    d = cfg.d_model
+    return convs + channels[-1] * d + cfg.n_layers * (4 * d * d + 2 * d * cfg.dim_ff) + 4 * d * d \
+        + (cfg.vocab_size + cfg.max_len + 2) * d
+
+
+def check_checkpoint(path: str | os.PathLike, payload: dict[str, Any], expect_domain: str | None = None
+                     ) -> tuple[ModelConfig, str]:
+    """(config, domain) of a read checkpoint, after checking it can be built and loaded as it claims: its
+    entries, a known domain with this version's tokens, a valid config of that domain's sizes (types, values,
+    no unknown key), a network of at most :data:`MAX_PARAMETERS` parameters, and weights of exactly the
+    network's names and shapes, all finite. Anything else is a :class:`CheckpointError` naming what is wrong,
+    raised before the network is built."""
+    from plad.config import ConfigError, build
+
+    missing = [k for k in ("domain", "tokens", "config", "state_dict") if k not in payload]
+    if missing:
+        raise CheckpointError(f"{path}: no {', '.join(map(repr, missing))} entry: not a complete PLAD checkpoint")
     domain = payload["domain"]
+    if not isinstance(domain, str):
+        raise CheckpointError(f"{path}: its domain is {domain!r}, not a domain name")
     if expect_domain is not None and domain != expect_domain:
         raise CheckpointError(f"{path}: a {domain} model, not a {expect_domain} one")
     try:
-        names = get_domain(domain).tokens.names
+        spec = get_domain(domain)
     except KeyError:
         raise CheckpointError(f"{path}: unknown domain {domain!r}") from None
-    if names != payload["tokens"]:
+    if spec.tokens.names != payload["tokens"]:
         raise CheckpointError(f"{path}: its {domain} vocabulary differs from this version's token table")
-    model = PLADNet(ModelConfig(**payload["config"]))
+    try:
+        cfg = build(ModelConfig, payload["config"], "config", source=str(path))
+    except ConfigError as err:
+        raise CheckpointError(str(err)) from None
+    want = {"vocab_size": len(spec.tokens), "max_len": spec.tokens.max_len, "input_shape": tuple(spec.shape)}
+    for key, value in want.items():
+        if getattr(cfg, key) != value:
+            raise CheckpointError(f"{path}: config.{key} = {getattr(cfg, key)!r}, but a {domain} network has "
+                                  f"{value!r}")
+    if cfg.n_layers + len(cfg.enc_channels) > MAX_BLOCKS or _estimate(cfg) > MAX_PARAMETERS:
+        raise CheckpointError(f"{path}: its config declares a network of about {_estimate(cfg):,} parameters "
+                              f"in {cfg.n_layers + len(cfg.enc_channels)} blocks, more than the limit of "
+                              f"{MAX_PARAMETERS:,} in {MAX_BLOCKS}")
+    try:
+        with torch.device("meta"):   # shapes without memory: what the weights must match
+            expected = {k: v.shape for k, v in PLADNet(cfg).state_dict().items()}
+    except (RuntimeError, ValueError) as err:   # e.g. more poolings than the input has pixels
+        raise CheckpointError(f"{path}: its config builds no network ({one_line(err)[:200]})") from None
+    if sum(int(np.prod(s)) for s in expected.values()) > MAX_PARAMETERS:
+        raise CheckpointError(f"{path}: its config declares more than {MAX_PARAMETERS:,} parameters")
+    weights = payload["state_dict"]
+    if not isinstance(weights, dict):
+        raise CheckpointError(f"{path}: its weights are not a mapping of names to tensors")
+    absent = sorted(set(expected) - set(weights))
+    extra = sorted(set(weights) - set(expected))
+    if absent or extra:
+        parts = ([f"missing weights {', '.join(absent[:3])}{' ...' if len(absent) > 3 else ''}"] if absent else []) \
+            + ([f"unexpected weights {', '.join(extra[:3])}{' ...' if len(extra) > 3 else ''}"] if extra else [])
+        raise CheckpointError(f"{path}: {'; '.join(parts)} for its config")
+    for name, shape in expected.items():
+        tensor = weights[name]
+        if not isinstance(tensor, torch.Tensor) or tensor.shape != shape:
+            got = tuple(tensor.shape) if isinstance(tensor, torch.Tensor) else type(tensor).__name__
+            raise CheckpointError(f"{path}: weight {name} is {got}, its config needs {tuple(shape)}")
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{path}: weight {name} holds NaN or infinite values")
+    return cfg, domain
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu",
+               expect_domain: str | None = None) -> tuple[PLADNet, str]:
+    """(model in eval mode on ``device``, domain name) from a checkpoint file, checked first
+    (:func:`check_checkpoint`)."""
+    payload = read_checkpoint(path)
+    cfg, domain = check_checkpoint(path, payload, expect_domain)
+    model = PLADNet(cfg)
     model.load_state_dict(payload["state_dict"])
     return model.to(device).eval(), domain
 

@@ -77,7 +77,7 @@ def search_config(domain: Domain, **overrides) -> SearchConfig:
 
     Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
     """
-    from plad.config import build
+    from plad.config import ConfigError, build
 
     raw: dict = {}
     for source in (dict(domain.rewrite.search_defaults) if domain.rewrite else {}, overrides):
@@ -85,6 +85,9 @@ def search_config(domain: Domain, **overrides) -> SearchConfig:
             if key.startswith("refine."):
                 raw.setdefault("refine", {})[key.split(".", 1)[1]] = value
             elif key == "refine":
+                if not isinstance(value, dict):
+                    raise ConfigError(f"search configuration: refine = {value!r}: expected a mapping of refine "
+                                      f"settings (or set one with refine.KEY=VALUE, e.g. refine.rounds=3)")
                 raw.setdefault("refine", {}).update(value)
             else:
                 raw[key] = value

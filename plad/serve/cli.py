@@ -4,7 +4,7 @@
     plad export DOMAIN PROGRAM --format FORMAT [-o FILE]
     plad score DOMAIN --pred pred.npy --target target.npy
     plad data check | download
-    plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/
+    plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/ [--no-refine]
     plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
     plad search DOMAIN shape.npy --set insertions=8
     plad models
@@ -14,9 +14,9 @@ DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
 types, its export formats) it declares itself (:class:`plad.domains.base.Domain`).
 Errors are one line on stderr, never a traceback, with the exit status of
-:mod:`plad.errors`: 0 ok, 1 a failure of the run or its data (a missing
-dataset or model store), 2 bad usage or input (an argument, a program, an
-input file).
+:mod:`plad.errors` (0 ok, 1 a failure of the run or its data, 2 bad usage or
+input: the convention and its cases are written there). Every command reads
+the user's shapes with the one reader of :mod:`plad.data.inputs`.
 """
 from __future__ import annotations
 
@@ -24,32 +24,89 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 # The parser, --help, argument errors, `plad models` and `plad data check` import neither
 # torch, MLflow nor open3d (a test checks it): every command imports what it needs itself.
-if TYPE_CHECKING:
-    import numpy as np
-
-from plad.errors import BadInput
+from plad.errors import BadInput, one_line
 
 
 class UsageError(BadInput):
     """A problem with the user's input; printed as one line, exit status 2 (:mod:`plad.errors`)."""
 
 
-# ---- shape files -------------------------------------------------------------------
-def load_shapes(path: Path, shape: tuple[int, ...], targets: bool = True) -> np.ndarray:
-    """Shapes for scoring or search, checked at the edge by :func:`plad.data.inputs.read_shapes`; bool (N, *shape).
+# ---- shapes and output files ----------------------------------------------------------------
+def read_shapes(path: str, shape: tuple[int, ...], target: bool = True, frames=None) -> list:
+    """The shapes of one file by the one reader (:func:`plad.data.inputs.read_file`): one item per shape, a bad
+    shape of a batch an item with its error. A file that gives one item, in error, is a :class:`UsageError`."""
+    from plad.data.inputs import quote, read_file
 
-    ``targets``: the empty-shape rule applies (a prediction may be empty).
-    """
-    from plad.data.inputs import InputError, read_shapes
+    items = read_file(path, tuple(shape), target=target, frames=frames)
+    if len(items) == 1 and items[0].error:
+        raise UsageError(f"{quote(path)}: {items[0].error}")
+    return items
+
+
+def check_output(path: str | None, inputs: tuple[str, ...] = ()) -> Path | None:
+    """The output file ``path``, checked before any work: not a folder, not one of the ``inputs`` (never written
+    over), and in a folder this process can write to. None when no output was asked for."""
+    import tempfile
+
+    from plad.data.inputs import quote
+
+    if path is None:
+        return None
+    out = Path(path)
+
+    def refuse(reason: str):
+        return UsageError(f"{quote(path)}: cannot write ({reason})")
 
     try:
-        return read_shapes(path, tuple(shape), targets=targets)
-    except InputError as err:
-        raise UsageError(f"{path}: {err}") from None
+        if out.is_dir():
+            raise refuse("it is a folder; name a file")
+        if out.exists() and any(_same_file(source, out) for source in inputs):
+            raise refuse("it is an input of this command, which is never written over")
+        if not out.parent.is_dir():
+            raise refuse(f"No such file or directory: no folder {quote(out.parent)}")
+        # the real test of a writable folder: create (and remove) a file in it, as the atomic write will
+        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".plad-check-"):
+            pass
+    except (OSError, ValueError) as err:
+        raise refuse(getattr(err, "strerror", None) or one_line(err)) from None
+    return out
+
+
+def _same_file(source: str, out: Path) -> bool:
+    """Whether the argument ``source`` (a path, or text such as a program) names the file ``out``."""
+    try:
+        return Path(source).exists() and os.path.samefile(source, out)
+    except (OSError, ValueError):   # not a path at all (too long, a NUL): not that file
+        return False
+
+
+def check_out_dir(path: str, flag: str = "--out") -> None:
+    """A folder that runs write into: it exists as a folder, or can be made in the nearest existing folder
+    above it (checked before any work; nothing is created here)."""
+    from plad.data.inputs import quote
+
+    folder = Path(path)
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise UsageError(f"{flag} {quote(path)}: {quote(probe)} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag} {quote(path)}: cannot write in {quote(probe)}")
+
+
+def write_output(out: Path, text: str) -> None:
+    """``text`` into ``out`` (atomically); a failure is one line."""
+    from plad.data.inputs import quote
+    from plad.fsutil import atomic_write_text
+
+    try:
+        atomic_write_text(out, text)
+    except OSError as err:
+        raise UsageError(f"{quote(out)}: cannot write ({err.strerror or err.__class__.__name__})") from None
 
 
 # ---- commands --------------------------------------------------------------------------
@@ -58,6 +115,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
     from plad.domains.grammar import ProgramError
 
     domain = get_domain(args.domain)
+    check_output(args.output, (args.program,))
     text = _program_text(args.program)
     try:
         shown = domain.execute_text(text, args.output)
@@ -73,8 +131,12 @@ def cmd_execute(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    """A program in another tool's format: the writers of ``plad infer``'s files (:meth:`Domain.write_export`)."""
+    import tempfile
+
     from plad.domains import get_domain
     from plad.domains.grammar import ProgramError
+    from plad.fsutil import atomic_write
 
     domain = get_domain(args.domain)
     formats = domain.export_formats
@@ -82,37 +144,61 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise UsageError(f"the {args.domain} domain has no export formats")
     if args.format not in formats:
         raise UsageError(f"unknown export format {args.format!r} for {args.domain}; known: {', '.join(formats)}")
-    try:
-        out = domain.export_text(_program_text(args.program), args.format)
-    except ValueError as err:
-        if isinstance(err, ProgramError):
-            raise
-        raise UsageError(str(err)) from None
-    if args.output:
+    out = check_output(args.output, (args.program,))
+    text = _program_text(args.program)
+    with tempfile.TemporaryDirectory(prefix="plad-export-") as tmp:
+        path = Path(tmp) / f"program.{args.format}"
         try:
-            Path(args.output).write_text(out)
+            written = domain.export_program(text, args.format, path)
+        except ValueError as err:
+            if isinstance(err, ProgramError):
+                raise
+            raise UsageError(str(err)) from None
+        if not written:
+            raise UsageError(f"the program has nothing to write as .{args.format} (it executes to an empty shape)")
+        data = path.read_bytes()
+    if out is not None:
+        try:
+            atomic_write(out, lambda fh: fh.write(data))
         except OSError as err:
             raise UsageError(f"{args.output}: cannot write ({err.strerror or err.__class__.__name__})") from None
-    else:
-        sys.stdout.write(out)
+        return 0
+    try:
+        sys.stdout.write(data.decode())
+    except UnicodeDecodeError:   # a binary format (e.g. PLY)
+        sys.stdout.flush()
+        sys.stdout.buffer.write(data)
     return 0
 
 
 def cmd_score(args: argparse.Namespace) -> int:
+    """The domain metric of each prediction against its target; a pair that cannot be scored prints ``nan``
+    with its error on stderr, and the mean is over the others (exit status 2)."""
+    import numpy as np
     import torch
 
     from plad.domains import get_domain
 
     domain = get_domain(args.domain)
-    pred = load_shapes(Path(args.pred), domain.shape, targets=False)
-    target = load_shapes(Path(args.target), domain.shape)
-    if len(pred) != len(target):
-        raise UsageError(f"{args.pred} holds {len(pred)} shapes but {args.target} holds {len(target)}")
-    values = domain.metric(torch.from_numpy(pred), torch.from_numpy(target)).numpy()
-    for v in values:
+    targets = read_shapes(args.target, domain.shape)
+    # each prediction is placed where its target went (same source size), so both are compared on one grid
+    preds = read_shapes(args.pred, domain.shape, target=False, frames=[t.frame for t in targets])
+    if len(preds) != len(targets):
+        raise UsageError(f"{args.pred} holds {len(preds)} shapes but {args.target} holds {len(targets)}")
+    ok = [i for i, (p, t) in enumerate(zip(preds, targets)) if p.error is None and t.error is None]
+    values = np.full(len(targets), np.nan)
+    if ok:
+        pred = torch.from_numpy(np.stack([preds[i].shape for i in ok]))
+        target = torch.from_numpy(np.stack([targets[i].shape for i in ok]))
+        values[ok] = domain.metric(pred, target).numpy()
+    for p, t, v in zip(preds, targets, values):
+        for it, role in ((t, "target"), (p, "pred")):
+            if it.error:
+                print(f"plad: error: {role} {it.where}: {it.error}", file=sys.stderr)
         print(f"{v:.6f}")
-    print(f"mean {values.mean():.6f}")   # for one shape too: scripts read the last line
-    return 0
+    # for one shape too: scripts read the last line
+    print(f"mean {values[ok].mean():.6f}" if ok else "mean nan")
+    return 0 if len(ok) == len(targets) else 2
 
 
 def cmd_data(args: argparse.Namespace) -> int:
@@ -141,44 +227,68 @@ def cmd_data(args: argparse.Namespace) -> int:
 
 def cmd_infer(args: argparse.Namespace) -> int:
     """Programs for the user's shapes; a bad file is reported and the others still processed."""
+    from plad.config import check_beam
     from plad.data.inputs import read_inputs
     from plad.device import default_device
     from plad.domains import get_domain
-    from plad.serve.infer import ModelError, infer_items, new_run_dir, resolve_model
+    from plad.serve.infer import infer_items, new_run_dir, resolve_model
 
     domain = get_domain(args.domain)
-    if args.beam < 1:
-        raise UsageError(f"--beam must be at least 1, got {args.beam}")
+    beam = _beam(check_beam, args.beam)
+    check_out_dir(args.out)
     items = read_inputs(args.inputs, tuple(domain.shape))
     if not items:
-        raise UsageError(f"no supported files in {', '.join(args.inputs)}")
-    try:
-        model, source = resolve_model(args.domain, args.model, default_device())
-    except ModelError as err:
-        raise UsageError(str(err)) from None
-    print(f"model: {source}", file=sys.stderr)
-    try:
-        run_dir = new_run_dir(args.out)
-    except OSError as err:
-        raise UsageError(f"--out {args.out}: cannot make this run's folder ({err.strerror or err})") from None
+        raise UsageError(f"no supported files in {', '.join(map(_quote, args.inputs))}")
+    if all(it.error for it in items):   # nothing to infer: report, and leave no run folder behind
+        for it in items:
+            print(f"plad: error: {it.where}: {it.error}", file=sys.stderr)
+        raise UsageError(f"none of the {len(items)} input shape(s) can be used; nothing was written")
     refine = None
     if args.refine:
         from plad.rewrite import RefineConfig
 
         refine = RefineConfig()
-    results = infer_items(model, domain, items, args.beam, run_dir, refine=refine)
+    model, source = resolve_model(args.domain, args.model, default_device())   # ModelError: exit status 1
+    print(f"model: {source}", file=sys.stderr)
+    try:
+        run_dir = new_run_dir(args.out)
+    except OSError as err:
+        raise UsageError(f"--out {_quote(args.out)}: cannot make this run's folder ({err.strerror or err})") from None
+    results = infer_items(model, domain, items, beam, run_dir, refine=refine)
     failed = 0
     for r in results:
-        where = r.item.source if r.item.source.name.startswith(r.item.name) else f"{r.item.source} [{r.item.name}]"
+        where = _shown_as(r.item)
         if r.ok:
             notes = f"  ({'; '.join(r.item.notes)})" if r.item.notes else ""
-            print(f"{where}: {domain.metric.name} {r.value:.4f}  {r.program}{notes}")
+            print(f"{where}: {domain.metric.name} {r.value:.4f}  {r.seconds:.2f} s  {r.program}{notes}")
         else:
             failed += 1
             print(f"plad: error: {where}: {r.item.error}", file=sys.stderr)
-    print(f"{len(results) - failed} of {len(results)} shapes inferred; this run's rows: {run_dir / 'results.csv'}",
-          file=sys.stderr)
+    seconds = sum(r.seconds for r in results if r.ok)
+    print(f"{len(results) - failed} of {len(results)} shapes inferred{' and refined' if args.refine else ''} in "
+          f"{seconds:.1f} s; this run's rows: {run_dir / 'results.csv'}", file=sys.stderr)
     return 2 if failed else 0
+
+
+def _quote(path: object) -> str:
+    from plad.data.inputs import quote
+
+    return quote(path)
+
+
+def _shown_as(item) -> str:
+    """Where an item came from, and its output name when that is not the file's own stem."""
+    from plad.data.inputs import safe_name
+
+    natural = safe_name(item.source.stem) + ("" if item.index is None else f"_{item.index}")
+    return item.where if item.name == natural else f"{item.where} (as {item.name})"
+
+
+def _beam(check, beam: int) -> int:
+    try:
+        return check(beam)
+    except ValueError as err:
+        raise UsageError(f"--beam {beam}: {err}") from None
 
 
 def _program_text(text: str) -> str:
@@ -207,7 +317,7 @@ def _search_setup(domain_name: str, overrides: list[str]):
     """(domain, search configuration with ``--set KEY=VALUE`` overrides)."""
     import yaml
 
-    from plad.config import ConfigError
+    from plad.config import ConfigError, safe_yaml
     from plad.domains import get_domain
     from plad.rewrite import search_config
 
@@ -220,9 +330,11 @@ def _search_setup(domain_name: str, overrides: list[str]):
         if not sep or not key.strip():
             raise UsageError(f"--set {item!r}: expected KEY=VALUE")
         try:
-            values[key.strip()] = yaml.safe_load(text)
+            values[key.strip()] = safe_yaml(text)
         except yaml.YAMLError:
             raise UsageError(f"--set {item!r}: value is not valid YAML") from None
+        except (ValueError, RecursionError) as err:
+            raise UsageError(f"--set {item!r}: refused: {one_line(err)}") from None
     try:
         return domain, search_config(domain, **values)
     except ConfigError as err:
@@ -233,55 +345,71 @@ def cmd_refine(args: argparse.Namespace) -> int:
     """Rewrite a program towards a target shape; never returns a worse program."""
     import torch
 
-    from plad.fsutil import atomic_write_text
     from plad.rewrite import refine
     from plad.rewrite.evaluate import Scorer
 
     domain, cfg = _search_setup(args.domain, args.set)
+    out = check_output(args.output, (args.program, args.target))
     ids = domain.parse(_program_text(args.program))
-    target = load_shapes(Path(args.target), domain.shape)
-    if len(target) != 1:
-        raise UsageError(f"{args.target} holds {len(target)} shapes; refine takes one target shape")
-    target = torch.from_numpy(target)
+    items = read_shapes(args.target, domain.shape)
+    if len(items) != 1:
+        raise UsageError(f"{_quote(args.target)} holds {len(items)} shapes; refine takes one target shape")
+    if items[0].error:
+        raise UsageError(f"{items[0].where}: {items[0].error}")
+    for note in items[0].notes:
+        print(f"{_quote(args.target)}: {note}", file=sys.stderr)
+    target = torch.from_numpy(items[0].shape[None])
     before = float(Scorer(domain, target).values([ids])[0])
     result = refine(domain, [ids], target, cfg.refine)
     text = domain.format(result.programs[0])
+    if out is not None:
+        write_output(out, text + "\n")
     print(text)
-    if args.output:
-        atomic_write_text(Path(args.output), text + "\n")
     print(f"refined in {result.seconds:.1f} s", file=sys.stderr)
     print(f"{domain.metric.name} {before:.6f} -> {float(result.values[0]):.6f}")
     return 0
 
 
 def cmd_search(args: argparse.Namespace) -> int:
-    """Search from scratch (no network) for programs of the shapes in a file."""
+    """Search from scratch (no network) for programs of the shapes in a file; a bad shape of a batch is
+    reported (its line in ``-o`` left empty) and the others searched."""
+    import numpy as np
     import torch
 
-    from plad.fsutil import atomic_write_text
     from plad.rewrite import search
 
     domain, cfg = _search_setup(args.domain, args.set)
-    targets = load_shapes(Path(args.file), domain.shape)
-    result = search(domain, torch.from_numpy(targets), cfg)
+    out = check_output(args.output, (args.file,))
+    items = read_shapes(args.file, domain.shape)
+    good = [it for it in items if it.error is None]
+    programs: dict[int, tuple[list[int], float]] = {}
+    seconds = 0.0
+    if good:
+        result = search(domain, torch.from_numpy(np.stack([it.shape for it in good])), cfg)
+        programs = {id(it): (ids, v) for it, ids, v in zip(good, result.programs, result.values.tolist())}
+        seconds = result.seconds
     failed = 0
     lines = []
-    for i, (ids, value) in enumerate(zip(result.programs, result.values.tolist())):
-        where = args.file if len(targets) == 1 else f"{args.file} [{i}]"
-        if not ids:
+    for it in items:
+        if it.error is None and not programs[id(it)][0]:
+            it.error = "no program scores better than the empty one"
+        if it.error:
             failed += 1
-            print(f"plad: error: {where}: no program scores better than the empty one (is the shape empty?)",
-                  file=sys.stderr)
+            print(f"plad: error: {it.where}: {it.error}", file=sys.stderr)
             lines.append("")
             continue
+        for note in it.notes:
+            print(f"{it.where}: {note}", file=sys.stderr)
+        ids, value = programs[id(it)]
         lines.append(domain.format(ids))
         print(lines[-1])
         print(f"{domain.metric.name} {value:.6f}")
-    if len(targets) > 1:
-        print(f"mean {result.values.mean().item():.6f}")
-    if args.output:
-        atomic_write_text(Path(args.output), "\n".join(lines) + "\n")
-    print(f"searched {len(targets)} shape(s) in {result.seconds:.1f} s", file=sys.stderr)
+    if len(items) > 1:
+        values = [programs[id(it)][1] for it in items if it.error is None]
+        print(f"mean {np.mean(values):.6f}" if values else "mean nan")
+    if out is not None:
+        write_output(out, "\n".join(lines) + "\n")
+    print(f"searched {len(good)} shape(s) in {seconds:.1f} s", file=sys.stderr)
     return 2 if failed else 0
 
 
@@ -293,19 +421,16 @@ def cmd_models(args: argparse.Namespace) -> int:
         return _ship_pretrained(args)
     from plad.domains import domain_names
     from plad.serve.resolve import configured_store
-    from plad.shipped import ShipError, describe_totals, list_pretrained, list_shipped, shipped_dir
+    from plad.shipped import describe_totals, list_pretrained, list_shipped, shipped_dir
 
-    rows = []   # (domain, source, model, method, test)
-    try:
-        for m in list_shipped():
-            t = m.test
-            test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
-            rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test))
-        # the pretrained networks: what they hold (the SP row of the results is their test metric)
-        for m in list_pretrained():
-            rows.append((m.domain, "pretrained", str(m.checkpoint), "sp", describe_totals(m)))
-    except ShipError as err:
-        raise UsageError(str(err)) from None
+    rows = []   # (domain, source, model, method, test, provenance)
+    for m in list_shipped():   # a damaged sidecar: ShipError, exit status 1
+        t = m.test
+        test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
+        rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test, _provenance(m.info)))
+    # the pretrained networks: what they hold (the SP row of the results is their test metric)
+    for m in list_pretrained():
+        rows.append((m.domain, "pretrained", str(m.checkpoint), "sp", describe_totals(m), _provenance(m.info)))
     store = configured_store()
     if store is not None:   # MLflow is imported only to read a configured store
         from plad.tracking import registered_models
@@ -315,16 +440,18 @@ def cmd_models(args: argparse.Namespace) -> int:
             aliases = "".join(f"@{a}" for a in r["aliases"])
             rows.append((domain if domain in domain_names() else r["name"], "registered",
                          f"models:/{r['name']}/{r['version']} {aliases}".rstrip(), r["method"] or "-",
-                         r["test"] or "-"))
+                         r["test"] or "-", f"MLflow run {r['run_id']}" if r.get("run_id") else ""))
     # the model `plad infer DOMAIN` uses without --model: the champion, else the shipped one
     default = {}
     for domain, source, model, *_ in rows:
         if source == "registered" and "@champion" in model or source == "shipped" and domain not in default:
             default[domain] = model
     print(f"{'domain':<14} {'source':<10} {'method':<18} {'test metric':<36} model  (* = used by default)")
-    for domain, source, model, method, test in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
+    for domain, source, model, method, test, provenance in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
         mark = "*" if default.get(domain) == model else " "
         print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
+        if provenance:
+            print(f"{'':<14} provenance: {provenance}")
     if not rows:
         print("(no shipped or registered models)")
     env = os.environ.get("MLFLOW_TRACKING_URI")
@@ -334,14 +461,28 @@ def cmd_models(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ship(args: argparse.Namespace) -> int:
-    from plad.shipped import ShipError, ship
+def _provenance(info: dict) -> str:
+    """Where a shipped model came from, in one line: its checkpoint, the git revision and params it was
+    trained with, and its checksum (the sidecar's ``provenance``, :mod:`plad.shipped`)."""
+    prov = info.get("provenance") or {}
+    git = prov.get("git") or {}
+    parts = []
+    if info.get("checkpoint", {}).get("shipped_from"):
+        parts.append(f"from {info['checkpoint']['shipped_from']}")
+    if git.get("revision"):
+        parts.append(f"git {str(git['revision'])[:7]}{' (dirty)' if git.get('dirty') else ''}")
+    if prov.get("params_file"):
+        parts.append(f"params {prov['params_file']}" + (f" (profile {prov['profile']})" if prov.get("profile") else ""))
+    if info.get("checkpoint", {}).get("sha256"):
+        parts.append(f"sha256 {str(info['checkpoint']['sha256'])[:12]}")
+    return ", ".join(parts)
 
-    try:
-        shipped = ship(args.domain, args.checkpoint, args.metrics, dest=args.dest, root=args.root,
-                       params=args.params, data_dir=args.data_dir)
-    except ShipError as err:
-        raise UsageError(str(err)) from None
+
+def _ship(args: argparse.Namespace) -> int:
+    from plad.shipped import ship
+
+    shipped = ship(args.domain, args.checkpoint, args.metrics, dest=args.dest, root=args.root,   # ShipError: 1
+                   params=args.params, data_dir=args.data_dir, force=args.force)
     git = shipped.info["provenance"]["git"]
     print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes) and "
           f"{shipped.checkpoint.with_name('model.json')}: test {shipped.test.get('metric')} "
@@ -350,12 +491,9 @@ def _ship(args: argparse.Namespace) -> int:
 
 
 def _ship_pretrained(args: argparse.Namespace) -> int:
-    from plad.shipped import ShipError, describe_totals, ship_pretrained
+    from plad.shipped import describe_totals, ship_pretrained
 
-    try:
-        shipped = ship_pretrained(args.domain, args.checkpoint, dest=args.dest)
-    except ShipError as err:
-        raise UsageError(str(err)) from None
+    shipped = ship_pretrained(args.domain, args.checkpoint, dest=args.dest)   # ShipError: exit status 1
     print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes): {describe_totals(shipped)}")
     return 0
 
@@ -404,9 +542,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--beam", type=int, default=10, help="beam width (default 10)")
     p.add_argument("--out", default="inferred",
                    help="output folder (default: ./inferred); each run writes into its own <time>-<pid>/ in it")
-    p.add_argument("--refine", action="store_true",
+    p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=True,
                    help="rewrite each best-of-beam program with the rewriters (PO, pruning, insertion) before "
-                        "writing it; never worse, slower")
+                        "writing it: never worse, often much better, slower (default); --no-refine: the "
+                        "network's beam alone")
     p.set_defaults(func=cmd_infer)
 
     p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")
@@ -444,6 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--data-dir", default=None, help="data directory (for the data files' checksums)")
     q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
                                                 "or $PLAD_SHIPPED_DIR)")
+    q.add_argument("--force", action="store_true",
+                   help="ship it even when it does not beat the shipped model's test metric on the same test "
+                        "(the replaced model is kept in DOMAIN/previous/ either way)")
     q = ms.add_parser("ship-pretrained", help="ship a pretraining's state as the pretrained network of its domain "
                                               "(continued by `pretrain.DOMAIN.init: shipped`)")
     q.add_argument("domain", choices=domain_names())

@@ -23,13 +23,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
+from plad.errors import RunFailure
 from plad.shipped import ShipError, pretrained_model, shipped_dir, shipped_model
 
 TRACKING_ENV = "MLFLOW_TRACKING_URI"
 
 
-class ModelError(Exception):
-    """The model cannot be found or used; one line."""
+class ModelError(RunFailure):
+    """The model cannot be found or used; one line (exit status 1, as a damaged checkpoint: :mod:`plad.errors`)."""
 
 
 def champion_uri(domain: str) -> str:
@@ -94,6 +95,11 @@ def resolve(domain: str, model: str | None = None) -> Choice:
         if path.is_file():
             return Choice("file", str(path), path)
         if is_model_uri(model):
+            if configured_store() is None:   # opening the default store would create ./mlflow.db
+                env = os.environ.get(TRACKING_ENV)
+                why = f"${TRACKING_ENV}={env} does not exist" if env else f"${TRACKING_ENV} is unset and there " \
+                    f"is no ./mlflow.db"
+                raise ModelError(f"{model}: no MLflow store to look it up in ({why}); a look-up creates none")
             return Choice("mlflow", model, _download(model))
         raise ModelError(f"{model}: no such checkpoint file, and not an MLflow model URI (models:/NAME@ALIAS, "
                          "models:/NAME/VERSION, runs:/RUN/model)")

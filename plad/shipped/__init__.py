@@ -21,10 +21,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from plad.errors import RunFailure
 
 #: overrides the folder of shipped models (tests; a site that keeps its own)
 SHIPPED_ENV = "PLAD_SHIPPED_DIR"
@@ -35,8 +38,9 @@ LOCK = ".ship.lock"
 FORMAT = "plad-shipped-1"
 
 
-class ShipError(Exception):
-    """A model cannot be shipped or a shipped one is unusable; one line naming the file."""
+class ShipError(RunFailure):
+    """A model cannot be shipped or a shipped one is unusable; one line naming the file (exit status 1, as a
+    damaged checkpoint: :mod:`plad.errors`)."""
 
 
 def shipped_dir() -> Path:
@@ -183,16 +187,48 @@ def _test_metrics(metrics_path: Path, domain: str, checkpoint: Path) -> tuple[di
     return {**keep, **test}, record.get("method")
 
 
+#: where the model a ship replaced is kept: ``<domain>/previous/`` (its checkpoint and sidecar)
+PREVIOUS = "previous"
+
+
+def _better(new: dict[str, Any], old: ShippedModel) -> str | None:
+    """Why the test metric ``new`` does not beat ``old``'s (None when it does): the same metric on the same
+    test (shapes and beam), better in the metric's direction."""
+    have = old.test
+    shown = f"the shipped {old.domain} model's test {have.get('metric')} {have.get('mean')} (n {have.get('n')}, " \
+            f"beam {have.get('beam')})"
+    mine = f"this one's {new.get('metric')} {new.get('mean')} (n {new.get('n')}, beam {new.get('beam')})"
+    if any(new.get(k) != have.get(k) for k in ("metric", "n", "beam")):
+        return f"{mine} and {shown} are not measured alike"
+    higher = bool(new.get("higher_is_better", have.get("higher_is_better", False)))
+    try:
+        better = float(new["mean"]) > float(have["mean"]) if higher else float(new["mean"]) < float(have["mean"])
+    except (KeyError, TypeError, ValueError):
+        return f"{shown} or {mine} is not a number"
+    return None if better else f"{mine} is not better than {shown}"
+
+
+def _refuse_worse(test: dict[str, Any], current: ShippedModel, checkpoint: Path, folder: Path) -> None:
+    why = _better(test, current)
+    if why is not None:
+        raise ShipError(f"{checkpoint}: not shipped: {why}; `--force` ships it anyway (the shipped one is kept "
+                        f"in {folder / PREVIOUS})")
+
+
 def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike, *,
          dest: str | os.PathLike | None = None, root: str | os.PathLike = ".",
-         params: str | os.PathLike = "params.yaml", data_dir: str | None = None) -> ShippedModel:
+         params: str | os.PathLike = "params.yaml", data_dir: str | None = None, force: bool = False
+         ) -> ShippedModel:
     """Package a trained checkpoint as the shipped model of ``domain`` (in ``dest``, default :func:`shipped_dir`).
 
     The checkpoint is loaded and saved again without its training state (small); the sidecar
     records its sha256, config, token table, the test metrics of ``metrics`` (an evaluation's
     ``metrics.json`` of this very checkpoint) and the provenance read under ``root`` (the layout
     root the model was trained in): ``params`` with its profile, the git revision, the data files'
-    checksums. Both files are written atomically; an earlier shipped model is replaced.
+    checksums. Both files are written atomically.
+
+    A model already shipped is replaced only by a better one, by the test metric in its direction on the
+    same test (shapes, beam), unless ``force``; the replaced one is kept in ``<domain>/previous/``.
     """
     from plad.domains import get_domain
     from plad.fsutil import atomic_write_text, file_lock
@@ -207,8 +243,11 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     params_path = params if Path(params).is_absolute() else root / params
     if not Path(params_path).is_file():
         raise ShipError(f"{params_path}: no such params file (the provenance of the model)")
-    provenance = _provenance(domain, root, Path(params_path), data_dir)
     folder = Path(dest or shipped_dir()) / domain
+    current = shipped_model(domain, folder.parent)
+    if current is not None and not force:   # refused before the provenance's checksums are computed
+        _refuse_worse(test, current, checkpoint, folder)
+    provenance = _provenance(domain, root, Path(params_path), data_dir)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -217,6 +256,15 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     with file_lock(folder / LOCK) as held:   # the pair is written by one ship at a time
         if not held:
             raise ShipError(f"{folder}: cannot create {LOCK} there (a read-only folder?); pass --dest a writable one")
+        current = shipped_model(domain, folder.parent)   # again under the lock: another ship may have come first
+        if current is not None and not force:
+            _refuse_worse(test, current, checkpoint, folder)
+        if current is not None:   # keep the model being replaced (one generation; git keeps the older ones)
+            keep = folder / PREVIOUS
+            keep.mkdir(exist_ok=True)
+            for name in (CHECKPOINT, SIDECAR):
+                shutil.copy2(folder / name, keep / f".{name}.part")
+                os.replace(keep / f".{name}.part", keep / name)
         out = save_checkpoint(folder / CHECKPOINT, model, domain, names)
         info = {
             "format": FORMAT, "domain": domain, "method": method,

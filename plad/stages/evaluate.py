@@ -67,6 +67,21 @@ class EvaluateConfig:
     #: a beam of the amortization sweep (set per beam by the evaluate_finetuned stages): used instead of ``beam``
     sweep_beam: int | None = None
 
+    def __post_init__(self) -> None:
+        # the refine settings are checked whatever ``refine`` says: a typo must not wait for the day it is used
+        from plad.config import ConfigError, build
+        from plad.rewrite import RefineConfig
+
+        # ConfigError is a ValueError: params.yaml's build() names the file and section in front of it
+        if not isinstance(self.refine_config, dict):
+            raise ConfigError(f"refine_config = {self.refine_config!r}: expected a mapping of refine settings")
+        try:
+            build(RefineConfig, dict(self.refine_config), "refine_config", source="")
+        except ConfigError as err:
+            raise ConfigError(str(err).removeprefix(": ")) from None
+        if self.refine_workers < 1:
+            raise ConfigError(f"refine_workers = {self.refine_workers}: expected at least 1")
+
 
 def result_key(cfg: EvaluateConfig) -> str:
     """Where this evaluation's results go (:func:`plad.layout.eval_key`)."""
@@ -97,15 +112,8 @@ def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:
 def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     from plad.config import ConfigError
 
-    if cfg.refine:
-        from plad.rewrite.pool import refine_all, refine_config
-
-        try:
-            refine_config(cfg.refine_config)
-        except (ConfigError, TypeError) as err:
-            raise ConfigError(f"evaluate.refine_config: {err}") from None
-        if cfg.refine_workers < 1:
-            raise ConfigError(f"evaluate.refine_workers = {cfg.refine_workers}: expected at least 1")
+    if cfg.refine:   # refine_config and refine_workers are checked with the config (EvaluateConfig.__post_init__)
+        from plad.rewrite.pool import refine_all
     beam = cfg.beam if cfg.sweep_beam is None else cfg.sweep_beam
     if beam < 1:
         raise ConfigError(f"evaluate: beam {beam} must be at least 1")

@@ -90,26 +90,34 @@ def load_checkpoint_pyfunc(checkpoint_path: str | os.PathLike, beam: int = 10) -
 
 
 # -- the pyfunc wrapper ---------------------------------------------------------------------------
-def _stack_input(model_input: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """(N, *shape) bool numpy array from an ndarray, a list of arrays or a DataFrame."""
+def _input_items(model_input: Any, shape: tuple[int, ...]) -> list:
+    """One :class:`plad.data.inputs.Item` per shape of the input, read by the one reader of every command
+    (:func:`plad.data.inputs.read_array`: sizes, NaN, empty and full targets): an ndarray (one shape or a
+    batch), a list of arrays, a dict of one such entry, or a DataFrame (one column of arrays, or one
+    flattened shape per row). A shape that cannot be used is an item with its error."""
+    from plad.data.inputs import Item, read_array
+
     if hasattr(model_input, "columns") and hasattr(model_input, "to_numpy"):   # DataFrame
         frame = model_input
         if frame.shape[1] == 1:
-            cells = list(frame.iloc[:, 0])
-            model_input = np.stack([np.asarray(c) for c in cells]) if cells else \
-                np.zeros((0, *shape), bool)
+            model_input = list(frame.iloc[:, 0])
         else:  # one flattened shape per row
-            model_input = frame.to_numpy().reshape(len(frame), *shape)
+            cells = frame.to_numpy()
+            if cells.shape[1] != int(np.prod(shape)):
+                return [Item("input", Path("<input>"), error=f"expected {int(np.prod(shape))} columns (one "
+                                                                f"flattened shape per row), got {cells.shape[1]}")]
+            model_input = cells.reshape(len(frame), *shape)
     elif isinstance(model_input, dict) and len(model_input) == 1:
         model_input = next(iter(model_input.values()))
-    arr = np.asarray(model_input)
-    if arr.dtype == object:
-        arr = np.stack([np.asarray(a) for a in arr])
-    if arr.shape == tuple(shape):
-        arr = arr[None]
-    if arr.shape[1:] != tuple(shape):
-        raise ValueError(f"expected shapes of size {tuple(shape)}, got an array of shape {arr.shape}")
-    return arr.astype(bool)
+    if isinstance(model_input, np.ndarray) and model_input.ndim == len(shape) + 1 and len(model_input) == 0:
+        return []   # an empty batch: no rows
+    if isinstance(model_input, (list, tuple)) or (isinstance(model_input, np.ndarray) and model_input.dtype == object):
+        items = []   # one shape per entry, each by the rule for one array
+        for i, entry in enumerate(model_input):
+            for it in read_array(entry, shape, name=f"input_{i}", source=f"<input {i}>"):
+                items.append(it)
+        return items
+    return read_array(model_input, shape, source="<input>")
 
 
 class Predictor:
@@ -117,8 +125,10 @@ class Predictor:
 
     ``Predictor(checkpoint, beam)`` loads the checkpoint (on CUDA when present). ``predict(model_input,
     params=None)``: ``model_input`` is a bool/uint8 array (N, *shape), one shape (*shape), a list of
-    them or a one-column DataFrame of them; returns a DataFrame with columns ``program`` (text) and
-    the domain metric's name. ``params={"beam": k}`` overrides the beam width.
+    them or a one-column DataFrame of them; returns a DataFrame with one row per shape and columns
+    ``program`` (text), the domain metric's name and ``error`` (None, or why that shape could not be read:
+    its program is None and its metric NaN, the other rows are answered). ``params={"beam": k}``
+    overrides the beam width (checked as the CLI checks ``--beam``).
 
     Stored models import this class by its name, ``plad.tracking.serving.Predictor``
     (``plad/tracking/pyfunc_model.py``): keep that name and this interface.
@@ -142,19 +152,26 @@ class Predictor:
         import pandas as pd
         import torch
 
+        from plad.config import MAX_BEAM_ROWS, check_beam
         from plad.model.decode import infer_programs
 
-        beam = int((params or {}).get("beam") or self.beam)
-        arr = _stack_input(model_input, tuple(self.domain.shape))
+        beam = check_beam((params or {}).get("beam", self.beam))   # 0, -1, 10**9: a ValueError, as in the CLI
+        items = _input_items(model_input, tuple(self.domain.shape))
+        good = [it for it in items if it.error is None]
         device = next(self.model.parameters()).device
-        programs: list[str] = []
-        values: list[float] = []
-        for i in range(0, len(arr), self.batch_size):
-            targets = torch.from_numpy(arr[i:i + self.batch_size]).to(device)
+        found: dict[int, tuple[str, float]] = {}
+        step = max(1, min(self.batch_size, MAX_BEAM_ROWS // beam))   # memory bounded whatever the beam
+        for i in range(0, len(good), step):
+            chunk = good[i:i + step]
+            targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
             result = infer_programs(self.model, self.domain, targets, beam)
-            programs += [self.domain.format(p) for p in result.programs]
-            values += result.values.double().cpu().tolist()
-        return pd.DataFrame({"program": programs, self.domain.metric.name: values})
+            for it, p, v in zip(chunk, result.programs, result.values.double().cpu().tolist()):
+                found[id(it)] = (self.domain.format(p), v)
+        return pd.DataFrame({
+            "program": [found[id(it)][0] if it.error is None else None for it in items],
+            self.domain.metric.name: [found[id(it)][1] if it.error is None else float("nan") for it in items],
+            "error": [it.error for it in items],
+        })
 
 
 # -- models logged before models from code ---------------------------------------------------------

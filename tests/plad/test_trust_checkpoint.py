@@ -54,7 +54,7 @@ def test_a_checkpoint_carrying_a_pickled_callable_is_refused_and_runs_nothing(tm
     np.save(img, shape)
     code = main(["infer", "csg2d", str(img), "--model", str(bad), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
-    assert code == 2 and "holds objects other than tensors" in err and "Traceback" not in err
+    assert code == 1 and "holds objects other than tensors" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
     assert not marker.exists()
     assert not (tmp_path / "out").exists()

@@ -65,7 +65,11 @@ def _params(tmp_path: Path, text: str) -> Path:
     ("finetune", "finetune.csg2d", "finetune:\n  base: {plad: {ws: {latent: 0}}}\n  csg2d: {}\n",
      "finetune.csg2d.plad.ws.latent = 0 must be positive"),
     ("evaluate", "evaluate.csg2d", "evaluate:\n  base: {beam: -1}\n  csg2d: {}\n",
-     "evaluate.csg2d.beam = -1 must be positive"),
+     "evaluate.csg2d.beam = -1 must be a beam width from 1 to 100 (MAX_BEAM)"),
+    ("evaluate", "evaluate.csg2d", "evaluate:\n  base: {beam: 1000000000}\n  csg2d: {}\n",
+     "evaluate.csg2d.beam = 1000000000 must be a beam width from 1 to 100 (MAX_BEAM)"),
+    ("evaluate", "evaluate.csg2d", "evaluate:\n  base: {device: tpu}\n  csg2d: {}\n",
+     "evaluate.csg2d.device = 'tpu': use auto (CUDA when present), cpu, cuda or cuda:N"),
 ])
 def test_params_ranges_and_relations_are_one_line_naming_the_key(tmp_path, capsys, module, section, text, key):
     import importlib

@@ -90,11 +90,15 @@ class CSG2D(Domain):
         diagonal = math.sqrt(sum(s * s for s in self.shape))
         return (1 - values / diagonal).clamp(0, 1) ** 20
 
-    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
-        """``<stem>.svg``: the program's primitives as vector shapes, its operations as masks."""
+    #: the program as an SVG drawing (its primitives as vector shapes, its operations as masks)
+    export_formats = ("svg",)
+
+    def write_export(self, ids: Sequence[int], fmt: str, path: Path) -> bool:
+        """``svg``: the program's primitives as vector shapes, its operations as masks."""
         from plad.domains.csg2d.export import to_svg
         from plad.fsutil import atomic_write_text
 
-        path = Path(f"{stem}.svg")
+        if fmt != "svg":
+            raise ValueError(self._unknown_format(fmt))
         atomic_write_text(path, to_svg(ids))
-        return [path]
+        return True

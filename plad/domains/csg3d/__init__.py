@@ -131,32 +131,25 @@ class CSG3D(Domain):
                                  f"use .npy, .ply, .obj or .png")
         return f"{self.format(ids)}: {int(grid.sum())} of {RES ** 3} voxels occupied"
 
-    #: formats of ``plad export csg3d``
-    export_formats = ("scad",)
+    #: a marching-cubes mesh of the execution (``ply``) and an equivalent OpenSCAD file (``scad``)
+    export_formats = ("ply", "scad")
 
-    def export_text(self, text: str, fmt: str) -> str:
-        """``plad export csg3d --format scad``: an equivalent OpenSCAD file's text."""
-        from plad.domains.csg3d.export import to_scad
-
-        if fmt != "scad":
-            raise ValueError(f"unknown export format {fmt!r} for csg3d; known: {', '.join(self.export_formats)}")
-        return to_scad(self.parse(text))
-
-    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
-        """``<stem>.ply`` (marching-cubes mesh of the execution) and ``<stem>.scad`` (OpenSCAD).
-
-        A program that executes to an empty grid has no surface: only its ``.scad`` is written.
-        """
+    def write_export(self, ids: Sequence[int], fmt: str, path: Path) -> bool:
+        """``scad``: an equivalent OpenSCAD file; ``ply``: a marching-cubes mesh of the execution (False, nothing
+        written, when the program executes to an empty grid: it has no surface)."""
         from plad.domains.csg3d.export import save_mesh, to_scad
         from plad.fsutil import atomic_write_text
 
-        mesh, scad = Path(f"{stem}.ply"), Path(f"{stem}.scad")
-        atomic_write_text(scad, to_scad(ids))
+        if fmt == "scad":
+            atomic_write_text(path, to_scad(ids))
+            return True
+        if fmt != "ply":
+            raise ValueError(self._unknown_format(fmt))
         grid = self.execute(torch.tensor([list(ids)]))[0].numpy()
         if not grid.any():
-            return [scad]
-        save_mesh(grid, mesh)
-        return [mesh, scad]
+            return False
+        save_mesh(grid, path)
+        return True
 
 
 __all__ = ["CSG3D"]

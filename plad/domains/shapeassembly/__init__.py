@@ -28,7 +28,7 @@ from plad.data.datasets.partnet.execute import ExecutionError
 from plad.data.datasets.partnet.voxels import RES, voxelize_batch
 from plad.data.files import TargetSource
 from plad.domains.base import Domain
-from plad.domains.grammar import TokenTable
+from plad.domains.grammar import ProgramError, TokenTable
 from plad.domains.shapeassembly.cuboids import token_cuboids
 from plad.domains.shapeassembly.tokens import format_program, parse, token_table
 from plad.metrics import IOU, Metric
@@ -65,6 +65,14 @@ class ShapeAssembly(Domain):
         return ShapeAssemblyRewrite(self)
 
     def parse(self, text: str) -> list[int]:
+        """Token text. A program of the full language (which ``plad execute`` and ``plad export`` run) has no
+        token form to rewrite: it is refused with the way to a token program of its shape."""
+        if _full_language(text):
+            raise ProgramError("a program of the full ShapeAssembly language, which `plad execute` and `plad "
+                               "export` run; refine and inference work on the domain's token programs (docs/"
+                               "shapeassembly.md): search or infer one for its shape instead, e.g. `plad execute "
+                               "shapeassembly PROGRAM -o shape.npy` then `plad search shapeassembly shape.npy`",
+                               position=0)
         return parse(text)
 
     def format(self, ids: Sequence[int]) -> str:
@@ -148,7 +156,7 @@ class ShapeAssembly(Domain):
         from plad.data.datasets.partnet.execute import run_text
         from plad.data.datasets.partnet.voxels import voxelize
 
-        if "Assembly" in text or "Cuboid(" in text:
+        if _full_language(text):
             cuboids = run_text(text)
             grid = voxelize(cuboids)
             kind = "full-language program"
@@ -175,16 +183,39 @@ class ShapeAssembly(Domain):
                                  f"use .npy, .ply, .obj or .png")
         return f"{kind}: {len(cuboids)} cuboids, {int(grid.sum())} of {RES ** 3} voxels occupied"
 
-    def export_files(self, ids: Sequence[int], stem: Path) -> list[Path]:
-        """``<stem>.ply``: a mesh of the program's cuboids (the grid's centered unit-cube frame)."""
+    #: a mesh of the program's cuboids (the grid's centered unit-cube frame)
+    export_formats = ("ply",)
+
+    def write_export(self, ids: Sequence[int], fmt: str, path: Path) -> bool:
+        """``ply``: a mesh of the program's cuboids (False, nothing written, when a singular frame makes the
+        program execute to nothing)."""
         from plad.domains.shapeassembly.export import save_mesh
 
-        path = Path(f"{stem}.ply")
+        if fmt != "ply":
+            raise ValueError(self._unknown_format(fmt))
         try:
             save_mesh(token_cuboids(ids), path)
         except ExecutionError:      # a singular frame: the program executes to nothing
-            return []
-        return [path]
+            return False
+        return True
+
+    def export_program(self, text: str, fmt: str, path: Path) -> bool:
+        """Token programs as every domain's; a program of the full language too (as ``plad execute`` runs it)."""
+        if not _full_language(text):
+            return super().export_program(text, fmt, path)
+        from plad.data.datasets.partnet.execute import run_text
+        from plad.domains.shapeassembly.export import save_mesh
+
+        if fmt not in self.export_formats:
+            raise ValueError(self._unknown_format(fmt))
+        save_mesh(run_text(text), path)
+        return True
+
+
+def _full_language(text: str) -> bool:
+    """Whether ``text`` is a program of the full hierarchical language (``Assembly`` blocks, ``Cuboid(...)``)
+    rather than of the domain's token language."""
+    return "Assembly" in text or "Cuboid(" in text
 
 
 __all__ = ["ShapeAssembly", "token_cuboids"]

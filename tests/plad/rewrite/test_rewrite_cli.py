@@ -51,6 +51,7 @@ def test_bad_input_is_one_line(tmp_path, capsys):
         (("search", "csg2d", str(tmp_path / "missing.npy")), "no such file"),
         (("search", "csg2d", str(targets), "--set", "sweeps=3"), "unknown key(s) sweeps"),
         (("search", "csg2d", str(targets), "--set", "insertions"), "expected KEY=VALUE"),
+        (("search", "csg2d", str(targets), "--set", "refine=3"), "refine = 3: expected a mapping of refine settings"),
     ]
     for args, message in cases:
         assert main(list(args)) == 2, args

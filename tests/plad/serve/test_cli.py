@@ -100,7 +100,7 @@ def test_score_reports_bad_files_in_one_line(tmp_path):
     np.save(tmp_path / "ok.npy", ok)
     (tmp_path / "junk.png").write_bytes(b"not a png")
     cases = [
-        (tmp_path / "wrong.npy", "expected shape"),
+        (tmp_path / "wrong.npy", "expected an array of shape"),
         (tmp_path / "missing.npy", "no such file"),
         (tmp_path / "junk.png", "not a readable image"),
     ]

@@ -3,6 +3,7 @@ MLflow store; PNG, a folder with bad files, meshes; outputs and metrics consiste
 from __future__ import annotations
 
 import csv
+import re
 
 import numpy as np
 import pytest
@@ -126,6 +127,7 @@ def test_infer_png_with_the_registered_champion(registry, tmp_path, capsys):
     out = the_run(out)
     err = capsys.readouterr().err
     assert "model: models:/plad-csg2d@champion" in err
+    assert re.search(r"1 of 1 shapes inferred and refined in \d+\.\d s", err)          # refined by default
     for suffix in (".txt", ".png", ".svg", ".input.npy", ".recon.npy"):
         assert (out / f"drawing{suffix}").is_file(), suffix
     (row,) = rows_of(out)
@@ -165,7 +167,7 @@ def test_infer_obj_mesh_with_a_checkpoint(checkpoints, tmp_path, capsys):
     mesh = tmp_path / "part.obj"
     assert main(["execute", "csg3d", PROGRAM_3D, "-o", str(mesh)]) == 0
     out = tmp_path / "out"
-    assert main(["infer", "csg3d", str(mesh), "--model", str(checkpoints["csg3d"]), "--beam", "2",
+    assert main(["infer", "csg3d", str(mesh), "--model", str(checkpoints["csg3d"]), "--beam", "2", "--no-refine",
                  "--out", str(out)]) == 0
     out = the_run(out)
     for suffix in (".txt", ".png", ".scad", ".input.npy", ".recon.npy"):
@@ -187,7 +189,10 @@ def test_a_model_of_another_domain_is_refused(checkpoints, tmp_path, capsys):
     status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--model", str(checkpoints["csg3d"]),
                    "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
-    assert status == 2 and "a csg3d model, not a csg2d one" in err and "Traceback" not in err
+    # a checkpoint that cannot be used is a failure of the run's data (exit status 1, plad.errors), and the
+    # model is resolved before the run's folder is made: nothing is left behind
+    assert status == 1 and "a csg3d model, not a csg2d one" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_missing_registered_model_is_one_line(registry, tmp_path, capsys):
@@ -195,7 +200,7 @@ def test_a_missing_registered_model_is_one_line(registry, tmp_path, capsys):
     status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--model", "models:/plad-nothing@champion",
                    "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert status == 2 and len(err) == 1 and "models:/plad-nothing@champion: not found" in err[0]
+    assert status == 1 and len(err) == 1 and "models:/plad-nothing@champion: not found" in err[0]
 
 
 def test_svg_export_draws_the_program(tmp_path):

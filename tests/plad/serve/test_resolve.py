@@ -135,7 +135,7 @@ def test_ship_refuses_metrics_of_another_model(trained, tmp_path, capsys):
     status = main(["models", "ship", "csg2d", str(trained / "runs/pretrain/csg2d/best.pt"), "--metrics", str(other),
                    "--root", str(trained), "--params", str(REPO / "params.yaml"), "--dest", str(tmp_path / "s")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert status == 2 and len(err) == 1 and str(other) in err[0] and "not of" in err[0]
+    assert status == 1 and len(err) == 1 and str(other) in err[0] and "not of" in err[0]   # ShipError: exit 1
     assert not (tmp_path / "s").exists()
 
 
@@ -164,8 +164,9 @@ def test_no_model_at_all_is_one_line(tmp_path):
     res = cli("infer", "csg2d", str(REPO / "examples/csg2d"), cwd=tmp_path,
               env={"PLAD_SHIPPED_DIR": str(tmp_path / "empty")})
     err = res.stderr.strip().splitlines()
-    assert res.returncode == 2 and len(err) == 1 and "no csg2d model" in err[0] and "--model" in err[0]
-    assert not (tmp_path / "mlflow.db").exists()
+    # no model is a failure of the run's data (exit status 1, plad.errors), found before any folder is made
+    assert res.returncode == 1 and len(err) == 1 and "no csg2d model" in err[0] and "--model" in err[0]
+    assert not (tmp_path / "mlflow.db").exists() and list(tmp_path.iterdir()) == []
 
 
 def test_a_damaged_shipped_model_is_refused(shipped, tmp_path):
@@ -176,7 +177,7 @@ def test_a_damaged_shipped_model_is_refused(shipped, tmp_path):
         fh.write(b"\0" * 16)
     res = cli("infer", "csg2d", str(REPO / "examples/csg2d"), cwd=tmp_path, env={"PLAD_SHIPPED_DIR": str(copy)})
     err = res.stderr.strip().splitlines()
-    assert res.returncode == 2 and len(err) == 1 and "differs from its sidecar" in err[0]
+    assert res.returncode == 1 and len(err) == 1 and "differs from its sidecar" in err[0]
 
 
 @pytest.fixture(scope="module")
@@ -215,6 +216,9 @@ def test_a_configured_store_with_a_champion_comes_first_and_models_lists_both(sh
         (shipped / "csg2d/model.json").read_text())["metrics"]["mean"])]
     assert by_source["registered"][3] == "7.5" and by_source["registered"][4].startswith("*models:/plad-csg2d/")
     assert not by_source["shipped"][-1].startswith("*")
+    # each model's provenance under its row: the shipped one's checkpoint, the registered one's run
+    assert "provenance: from runs/pretrain/csg2d/best.pt" in listed.stdout
+    assert "provenance: MLflow run " in listed.stdout
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "inferred") == []
 
 
@@ -259,7 +263,7 @@ def test_the_pyfunc_loader_resolves_like_infer(shipped, monkeypatch):
 
     shapes = domain.execute(torch.tensor([domain.parse(PROGRAM)])).numpy()
     out = load_pyfunc("csg2d").predict(shapes, params={"beam": 2})
-    assert list(out.columns) == ["program", "chamfer"] and len(out) == 1
+    assert list(out.columns) == ["program", "chamfer", "error"] and len(out) == 1 and out["error"].isna().all()
     assert out["program"][0].endswith("$") and np.isfinite(out["chamfer"][0])
     assert sorted(p.name for p in shipped.iterdir()) == ["csg2d"]
 

@@ -139,14 +139,14 @@ def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
     for i, shape in enumerate(shapes):
         np.save(tmp_path / f"s{i}.npy", shape)
     got, runs = {}, {}
-    for flag in ([], ["--refine"]):
-        out = tmp_path / ("refined" if flag else "plain")
+    for flag in (["--no-refine"], []):   # plad infer refines by default
+        out = tmp_path / ("plain" if flag else "refined")
         assert main(["infer", "csg2d", *(str(tmp_path / f"s{i}.npy") for i in range(3)), "--model",
                      str(layout.model("csg2d")), "--beam", "2", "--out", str(out), *flag]) == 0
         (run,) = out.iterdir()   # each plad infer run writes into a folder of its own
-        runs[bool(flag)] = run
+        runs[not flag] = run
         with (run / "results.csv").open() as fh:
-            got[bool(flag)] = np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
+            got[not flag] = np.array([float(r["chamfer"]) for r in csv.DictReader(fh)])
     assert (got[True] <= got[False]).all() and got[True].mean() < got[False].mean()
     # what is written is the refined program: plad score of its files gives the reported value
     capsys.readouterr()

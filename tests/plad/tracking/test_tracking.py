@@ -234,7 +234,7 @@ def test_log_model_register_champion_predict(store, client, tmp_path, capsys, ti
     shapes = rng.random((2, *domain.shape)) < 0.3
     out = loaded.predict(shapes)
     metric = domain.metric.name
-    assert list(out.columns) == ["program", metric] and len(out) == 2
+    assert list(out.columns) == ["program", metric, "error"] and len(out) == 2 and out["error"].isna().all()
     ids = [domain.parse(text) for text in out["program"]]
     executed = domain.execute(pad_programs(ids))
     expected = domain.metric(executed, torch.from_numpy(shapes)).numpy()

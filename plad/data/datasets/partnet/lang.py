@@ -73,13 +73,25 @@ _ASSEMBLY = re.compile(r"^Assembly\s+(?P<name>[A-Za-z_][A-Za-z0-9_]*)\s*\{\s*$")
 _ARITY = {"Cuboid": (3, 4), "attach": (8, 8), "squeeze": (6, 6), "reflect": (2, 2), "translate": (4, 4)}
 
 
-def _float(text: str, what: str, line: int) -> float:
+#: the language's range of each kind of number (docs/shapeassembly.md, "Program text"): a shape is about one
+#: unit across (PartNet's cuboids: 0.01 to 2.8), local coordinates address a cuboid's unit cube [0, 1]^3, a
+#: translate distance is a fraction of the bbox, and its count makes that many copies (PartNet: at most 36).
+#: Outside it execution fails numerically (1e300) or makes nothing (1e-300), silently.
+DIM_RANGE = (1e-3, 1e3)
+UNIT_RANGE = (0.0, 1.0)
+DISTANCE_RANGE = (-1.0, 1.0)
+MAX_COPIES = 100
+
+
+def _float(text: str, what: str, line: int, lo: float, hi: float) -> float:
     try:
         value = float(text)
     except ValueError:
         raise SAParseError(line, f"{what} must be a number, got {text!r}") from None
     if value != value or value in (float("inf"), float("-inf")):
         raise SAParseError(line, f"{what} must be finite, got {text!r}")
+    if not lo <= value <= hi:
+        raise SAParseError(line, f"{what} must be in [{lo:g}, {hi:g}] (the language's range), got {text}")
     return value
 
 
@@ -100,9 +112,14 @@ def _parse_line(text: str, line: int) -> Stmt:
         want = f"{lo}" if lo == hi else f"{lo} or {hi}"
         raise SAParseError(line, f"{fn} expects {want} arguments, got {len(args)}")
     if fn == "Cuboid":
-        dims = tuple(_float(a, f"{'lhw'[i]} of {lhs}", line) for i, a in enumerate(args[:3]))
-        if min(dims) <= 0:
-            raise SAParseError(line, f"dimensions of {lhs} must be positive, got {args[:3]}")
+        for a in args[:3]:   # the sign first: "must be positive" says more than a range
+            try:
+                value = float(a)
+            except ValueError:
+                continue         # not a number: _float says so
+            if value <= 0:
+                raise SAParseError(line, f"dimensions of {lhs} must be positive, got {args[:3]}")
+        dims = tuple(_float(a, f"{'lhw'[i]} of {lhs}", line, *DIM_RANGE) for i, a in enumerate(args[:3]))
         aligned = False
         if len(args) == 4:
             if args[3] not in ("True", "False"):
@@ -110,12 +127,12 @@ def _parse_line(text: str, line: int) -> Stmt:
             aligned = args[3] == "True"
         return Stmt("cuboid", (lhs, dims, aligned, "Program_" in lhs), line)
     if fn == "attach":
-        q = tuple(_float(a, f"attach coordinate {i + 1}", line) for i, a in enumerate(args[2:]))
+        q = tuple(_float(a, f"attach coordinate {i + 1}", line, *UNIT_RANGE) for i, a in enumerate(args[2:]))
         return Stmt("attach", (args[0], args[1], q[:3], q[3:]), line)
     if fn == "squeeze":
         if args[3] not in FACES:
             raise SAParseError(line, f"squeeze face must be one of {' '.join(FACES)}, got {args[3]!r}")
-        u, v = (_float(a, "squeeze coordinate", line) for a in args[4:])
+        u, v = (_float(a, "squeeze coordinate", line, *UNIT_RANGE) for a in args[4:])
         return Stmt("squeeze", (args[0], args[1], args[2], args[3], u, v), line)
     if args[1] not in AXES:
         raise SAParseError(line, f"{fn} axis must be X, Y or Z, got {args[1]!r}")
@@ -126,9 +143,9 @@ def _parse_line(text: str, line: int) -> Stmt:
         n = int(args[2])
     except ValueError:
         raise SAParseError(line, f"translate count must be an integer, got {args[2]!r}") from None
-    if n < 1:
-        raise SAParseError(line, f"translate count must be at least 1, got {n}")
-    return Stmt("translate", (args[0], axis, n, _float(args[3], "translate distance", line)), line)
+    if not 1 <= n <= MAX_COPIES:
+        raise SAParseError(line, f"translate count must be from 1 to {MAX_COPIES}, got {n}")
+    return Stmt("translate", (args[0], axis, n, _float(args[3], "translate distance", line, *DISTANCE_RANGE)), line)
 
 
 def check_block(block: Block) -> list[str]:

@@ -81,8 +81,8 @@ def test_execute_png_and_its_views(tmp_path):
     (["execute", "csg3d", "union cuboid 1 1 1 2 2 2", "-o", "x.npy"], "missing its second operand"),
     (["execute", "csg3d", PROGRAM, "-o", "x.stl"], "unsupported output type '.stl'"),
     (["execute", "csg3d", "diff cuboid 8 8 8 4 4 4 cuboid 8 8 8 6 6 6", "-o", "x.ply"], "the shape is empty"),
-    (["export", "csg3d", PROGRAM, "--format", "stl"], "unknown export format 'stl' for csg3d; known: scad"),
-    (["export", "csg2d", "c(32,32,16)$", "--format", "scad"], "the csg2d domain has no export formats"),
+    (["export", "csg3d", PROGRAM, "--format", "stl"], "unknown export format 'stl' for csg3d; known: ply, scad"),
+    (["export", "csg2d", "c(32,32,16)$", "--format", "scad"], "unknown export format 'scad' for csg2d; known: svg"),
     (["export", "csg3d", "cube 1 2 3", "--format", "scad"], "token 0 'cube' is not a csg3d token"),
 ])
 def test_cli_errors_are_one_line(tmp_path, monkeypatch, capsys, args, message):

@@ -84,7 +84,18 @@ def test_hand_program_exact_cuboids_and_voxels():
     ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n"
      "\treflect(cube0, W)\n}\n", 4, "axis must be X, Y or Z"),
     ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n"
-     "\ttranslate(cube0, X, 0, 0.5)\n}\n", 4, "count must be at least 1"),
+     "\ttranslate(cube0, X, 0, 0.5)\n}\n", 4, "count must be from 1 to 100"),
+    # values outside the language's range (issue 30: numpy warnings and an empty grid before)
+    ("Assembly Program_0 {\n\tbbox = Cuboid(1e300, 1, 1, True)\n}\n", 2,
+     "l of bbox must be in [0.001, 1000] (the language's range), got 1e300"),
+    ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1e-300, 1, True)\n}\n", 3,
+     "h of cube0 must be in [0.001, 1000]"),
+    ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n"
+     "\tattach(cube0, bbox, 0, 0, 0, 0, 1e9, 0)\n}\n", 4, "attach coordinate 5 must be in [0, 1]"),
+    ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n"
+     "\ttranslate(cube0, X, 1000000000, 0.5)\n}\n", 4, "count must be from 1 to 100, got 1000000000"),
+    ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n"
+     "\ttranslate(cube0, X, 2, 5)\n}\n", 4, "translate distance must be in [-1, 1]"),
     ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tProgram_1 = Cuboid(1, 1, 1, True)\n}\n", 3,
      "has no 'Assembly Program_1 {' block"),
     ("Assembly Program_0 {\n\tbbox = Cuboid(1, 1, 1, True)\n\tcube0 = Cuboid(1, 1, 1, True)\n", 3,
