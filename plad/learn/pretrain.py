@@ -39,7 +39,7 @@ import torch
 
 from plad.config import ConfigError
 from plad.data.batching import bucketed
-from plad.device import resolve_device
+from plad.device import check_precision, resolve_device, resolve_precision
 from plad.domains.base import pad_programs
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, HISTORY, LAST, PROVENANCE, SUMMARY, Layout
@@ -69,6 +69,9 @@ class PretrainConfig:
     real_val_shapes: int = 0
     #: budget of training time, minutes, counted across resumes (None: none)
     max_minutes: float | None = None
+    #: arithmetic of the training forward passes (:mod:`plad.device`): "fp32", "bf16" (autocast) or "auto"
+    #: (bf16 on a CUDA device that supports it, else fp32: a CPU run is unchanged)
+    precision: str = "fp32"
     model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
@@ -82,6 +85,9 @@ class PretrainConfig:
     #: schedule, Adam's moments kept: a rate that a plateau rule drove to its floor is never resumed) or
     #: "resume" (the saved schedule goes on: the segment trains as the run would have gone on)
     continue_lr: str = "restart"
+
+    def __post_init__(self) -> None:
+        check_precision(self.precision)
 
 
 
@@ -208,6 +214,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         if cfg.real_val_shapes else None
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     init_payload = read_init(init_path, cfg, model.cfg) if init_path is not None else None
+    precision = resolve_precision(cfg.precision, device)
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     history = out / HISTORY
@@ -326,7 +333,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
     init = Init(init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if init_payload else None
     result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
                  budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
-                 fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance)
+                 fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance, precision=precision)
     final = validate(model)
     if last.exists():
         record_ = provenance(read_checkpoint(last)["loop"])["provenance"]
