@@ -1,4 +1,5 @@
-"""Device choice and arithmetic precision, made lazily so that nothing touches CUDA at import time.
+"""Device choice, arithmetic precision and host-to-device copies, made lazily so that nothing touches CUDA at
+import time.
 
 Precision (params ``pretrain.<domain>.precision``, ``finetune.<domain>.precision``): ``fp32`` runs every
 forward pass in float32; ``bf16`` runs the training forward passes under bfloat16 autocast (matrix products and
@@ -12,6 +13,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from plad.config import ConfigError
@@ -80,3 +82,18 @@ def resolve_precision(name: str, device: torch.device) -> Precision:
         return Precision(device.type, torch.bfloat16)
     return Precision(device.type)
 
+
+def to_device(x: torch.Tensor | np.ndarray, device: torch.device) -> torch.Tensor:
+    """``x`` (a tensor or a NumPy array) on ``device``.
+
+    To a CUDA device from host memory the copy goes through pinned (page-locked) memory and does not block:
+    the host goes on preparing the next batch while the copy runs, and the GPU's work queue orders the copy
+    before any kernel that reads it. On the CPU nothing is copied (a NumPy array is shared, as
+    ``torch.from_numpy`` does).
+    """
+    t = torch.as_tensor(x)
+    if device.type != "cuda" or t.device.type != "cpu":
+        return t.to(device)
+    if not t.is_pinned():
+        t = t.pin_memory()
+    return t.to(device, non_blocking=True)

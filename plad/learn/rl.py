@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from plad.device import FP32, Precision
+from plad.device import FP32, Precision, to_device
 from plad.domains.base import Domain
 from plad.layout import BEST, STATE
 from plad.learn import distributed as dist
@@ -173,7 +173,7 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
         totals: dict[str, float] = {}
         for _ in range(cfg.steps_per_epoch):
             idx = np.sort(rng.choice(len(job.train), size=cfg.batch_size, replace=cfg.batch_size > len(job.train)))
-            step = learner.step(torch.from_numpy(job.train[idx]).to(device))
+            step = learner.step(to_device(job.train[idx], device))
             for k, v in step.items():
                 totals[k] = totals.get(k, 0.0) + v / cfg.steps_per_epoch
         model.eval()

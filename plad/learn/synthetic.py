@@ -12,6 +12,7 @@ import torch
 
 from plad.config import ConfigError
 from plad.data.batching import trim
+from plad.device import to_device
 from plad.domains.base import split_padding
 
 
@@ -37,8 +38,11 @@ def load_programs(path: Path) -> dict[str, torch.Tensor]:
 
 
 def make_batch(domain, programs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, ...]:
-    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here; the programs are cut
-    to the longest one (:func:`plad.data.batching.trim`)."""
-    programs, lengths = split_padding(programs.to(device))
+    """(shapes, programs, lengths) from -1-padded token rows: shapes are executed here, on ``device``; the
+    programs are cut to the longest one (:func:`plad.data.batching.trim`) where the rows are (the synthetic
+    file's: on the CPU, so that a GPU is not waited for to read the longest length), then moved."""
+    programs, lengths = split_padding(programs)
     programs = trim(programs, lengths)
+    programs, lengths = to_device(programs, device), to_device(lengths, device)
     return domain.execute(programs), programs, lengths
+

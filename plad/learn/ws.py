@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from plad.device import FP32, Precision
+from plad.device import FP32, Precision, to_device
 from plad.domains.base import Domain, split_padding
 from plad.fsutil import atomic_write
 from plad.learn import distributed as dist
@@ -153,8 +153,9 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
         total = 0.0
         for s in range(steps):
             idx = np.sort(order[s * cfg.batch_size:(s + 1) * cfg.batch_size])
-            programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)).to(device))
-            shapes = torch.from_numpy(pbest.executions[idx]).to(device)
+            programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)))
+            programs, lengths = to_device(programs, device), to_device(lengths, device)
+            shapes = to_device(pbest.executions[idx], device)
             with precision.autocast():
                 loss, _ = loss_of(shapes, programs, lengths, cfg.kl_weight)
             opt.zero_grad(set_to_none=True)
@@ -226,6 +227,6 @@ def ws_source(programs: np.ndarray, executions: np.ndarray, device: torch.device
 
     def draw(rng: np.random.Generator, n: int):
         idx = rng.choice(len(programs), size=n)
-        p, lengths = split_padding(torch.from_numpy(programs[idx].astype(np.int64)).to(device))
-        return torch.from_numpy(executions[idx]).to(device), p, lengths
+        p, lengths = split_padding(torch.from_numpy(programs[idx].astype(np.int64)))
+        return to_device(executions[idx], device), to_device(p, device), to_device(lengths, device)
     return draw

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from plad.config import ConfigError
-from plad.device import BF16_LOSS_RTOL, FP32, Precision, resolve_precision
+from plad.device import BF16_LOSS_RTOL, FP32, Precision, resolve_precision, to_device
 from tests.conftest import REPO_ROOT
 
 CPU = torch.device("cpu")
@@ -93,6 +93,22 @@ def test_a_bf16_training_step_moves_the_weights_as_an_fp32_step_does():
     assert not torch.equal(moved["fp32"], moved["bf16"]) and float(cos) > 0.99
 
 
+def test_to_device_on_the_cpu_copies_nothing():
+    array = np.arange(6, dtype=np.int64).reshape(2, 3)
+    t = to_device(array, CPU)
+    array[0, 0] = 7
+    assert t.dtype == torch.int64 and int(t[0, 0]) == 7      # shares the array's memory, as torch.from_numpy
+    tensor = torch.ones(3)
+    assert to_device(tensor, CPU) is tensor
+
+
+@needs_cuda
+def test_to_device_on_cuda_pins_and_copies_exactly():
+    array = np.random.default_rng(0).random((64, 32, 32)) > 0.5
+    t = to_device(array, torch.device("cuda"))
+    assert t.device.type == "cuda" and torch.equal(t.cpu(), torch.from_numpy(array))
+
+
 @needs_cuda
 @pytest.mark.parametrize("domain", ["csg2d", "shapeassembly"])
 def test_cuda_matches_cpu_in_fp32_and_bf16_stays_within_tolerance(domain):
@@ -100,7 +116,7 @@ def test_cuda_matches_cpu_in_fp32_and_bf16_stays_within_tolerance(domain):
 
     model, batch = shipped_batch(domain)
     gpu = copy.deepcopy(model).cuda()
-    cuda_batch = tuple(t.cuda() for t in batch)
+    cuda_batch = tuple(to_device(t, torch.device("cuda")) for t in batch)
     tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
     torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
     try:
