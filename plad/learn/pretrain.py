@@ -73,6 +73,10 @@ class PretrainConfig:
     #: arithmetic of the training forward passes (:mod:`plad.device`): "fp32", "bf16" (autocast) or "auto"
     #: (bf16 on a CUDA device that supports it, else fp32: a CPU run is unchanged)
     precision: str = "fp32"
+    #: compile the encoder with torch.compile: the part of a training step whose input shape is fixed by the
+    #: batch size (the decoder's length changes from batch to batch). It did not help on our CPUs
+    #: (docs/gpu.md); ``python -m bench.gpu_check --compile`` measures it on a GPU
+    compile: bool = False
     #: worker processes that execute the next batches' synthetic programs on the CPU while the model trains
     #: (:class:`plad.learn.synthetic.ExecutorPool`); 0: executed in the training process, on its device (CSG's
     #: executors run on a GPU, ShapeAssembly's runs in Python on the CPU)
@@ -220,6 +224,8 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     init_payload = read_init(init_path, cfg, model.cfg) if init_path is not None else None
     precision = resolve_precision(cfg.precision, device)
+    if cfg.compile:
+        model.encoder.compile()   # in place: the state dict keeps its keys
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     history = out / HISTORY
