@@ -4,8 +4,9 @@ import time.
 Precision (params ``pretrain.<domain>.precision``, ``finetune.<domain>.precision``): ``fp32`` runs every
 forward pass in float32; ``bf16`` runs the training forward passes under bfloat16 autocast (matrix products and
 convolutions in bf16, weights, gradients and optimizer state stay float32, so no loss scaling is needed);
-``auto`` is bf16 on a CUDA device that supports it and fp32 otherwise, so a profile that says ``auto`` keeps a
-CPU run's numbers unchanged. A CPU run may still opt in with ``bf16`` (CPUs with AVX512-BF16 or AMX run it
+``auto`` is bf16 on a CUDA device that computes bf16 natively (compute capability 8.0 and up: A100, H100, RTX 30xx
+and later) and fp32 otherwise (an older GPU would emulate bf16, slower than fp32), so a profile that says ``auto``
+keeps a CPU run's numbers unchanged. A CPU run may still opt in with ``bf16`` (CPUs with AVX512-BF16 or AMX run it
 faster: ``python -m bench.precision``). Decoding (beam search, sampling, validation) stays float32 either way.
 """
 from __future__ import annotations
@@ -74,11 +75,11 @@ FP32 = Precision()
 def resolve_precision(name: str, device: torch.device) -> Precision:
     """A params value (:data:`PRECISIONS`) for a run on ``device``."""
     check_precision(name)
-    bf16_ok = device.type != "cuda" or torch.cuda.is_bf16_supported()
-    if name == "bf16" and not bf16_ok:
+    if name == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
         raise ConfigError(f"precision: bf16 was requested but {torch.cuda.get_device_name(device)} does not "
                           f"support bfloat16; use fp32 or auto")
-    if name == "bf16" or (name == "auto" and device.type == "cuda" and bf16_ok):
+    native = device.type == "cuda" and torch.cuda.get_device_capability(device)[0] >= 8
+    if name == "bf16" or (name == "auto" and native):
         return Precision(device.type, torch.bfloat16)
     return Precision(device.type)
 

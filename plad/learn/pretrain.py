@@ -71,7 +71,7 @@ class PretrainConfig:
     #: budget of training time, minutes, counted across resumes (None: none)
     max_minutes: float | None = None
     #: arithmetic of the training forward passes (:mod:`plad.device`): "fp32", "bf16" (autocast) or "auto"
-    #: (bf16 on a CUDA device that supports it, else fp32: a CPU run is unchanged)
+    #: (bf16 on a CUDA GPU that computes it natively, else fp32: a CPU run is unchanged)
     precision: str = "fp32"
     #: compile the encoder with torch.compile: the part of a training step whose input shape is fixed by the
     #: batch size (the decoder's length changes from batch to batch). It did not help on our CPUs

@@ -43,7 +43,7 @@ class FinetuneStageConfig:
     key: str | None = None
     device: str = "auto"
     #: arithmetic of the training forward passes of every method (:mod:`plad.device`): "fp32", "bf16"
-    #: (autocast) or "auto" (bf16 on a CUDA device that supports it, else fp32); decoding stays float32
+    #: (autocast) or "auto" (bf16 on a CUDA GPU that computes it natively, else fp32); decoding stays float32
     precision: str = "fp32"
     threads: int | None = None
     seed: int = 0

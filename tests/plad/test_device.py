@@ -103,6 +103,12 @@ def test_to_device_on_the_cpu_copies_nothing():
 
 
 @needs_cuda
+def test_auto_is_bf16_on_a_gpu_that_computes_it_natively():
+    native = torch.cuda.get_device_capability()[0] >= 8    # A100, H100, RTX 30xx and later; older GPUs emulate it
+    assert resolve_precision("auto", torch.device("cuda")) == Precision("cuda", torch.bfloat16 if native else None)
+
+
+@needs_cuda
 def test_to_device_on_cuda_pins_and_copies_exactly():
     array = np.random.default_rng(0).random((64, 32, 32)) > 0.5
     t = to_device(array, torch.device("cuda"))
@@ -123,7 +129,7 @@ def test_cuda_matches_cpu_in_fp32_and_bf16_stays_within_tolerance(domain):
         with torch.no_grad():
             cpu_loss = float(model.loss(*batch)[0])
             cuda_loss = float(gpu.loss(*cuda_batch)[0])
-            with resolve_precision("auto", torch.device("cuda")).autocast():
+            with resolve_precision("bf16", torch.device("cuda")).autocast():
                 bf16_loss = float(gpu.loss(*cuda_batch)[0])
     finally:
         torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
