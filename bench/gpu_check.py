@@ -292,19 +292,18 @@ def time_steps(ctx: Context, model, batches, precision, res: Result, lr: float, 
     from plad.learn.train import train_step
 
     opt = torch.optim.Adam(model.parameters(), lr=lr)
+    for _ in range(ctx.sizes.warmup):
+        train_step(model, opt, lambda b: model.loss(*b), next(batches), grad_clip, precision)
     losses = []
-    timer = Timer(ctx.device)
-    for i in range(ctx.sizes.warmup + ctx.sizes.steps):
-        if i < ctx.sizes.warmup:
-            train_step(model, opt, lambda b: model.loss(*b), next(batches), grad_clip, precision)
-            continue
-        with timer:   # the batch is made inside the timing, as in training
+    # the steps one after another as in training, the batches made between them; the GPU is waited for once
+    with Timer(ctx.device) as timer:
+        for _ in range(ctx.sizes.steps):
             batch = next(batches)
             loss, _ = train_step(model, opt, lambda b: model.loss(*b), batch, grad_clip, precision)
-        losses.append(float(loss))
-        res.items += len(batch[0])
+            losses.append(loss)
+            res.items += len(batch[0])
     res.seconds, res.cpu_seconds = timer.seconds, timer.cpu_seconds
-    return losses
+    return [float(x) for x in losses]
 
 
 def part_pretrain(ctx: Context, res: Result) -> None:
