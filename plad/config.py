@@ -288,7 +288,7 @@ RULES: dict[str, tuple[str, Any]] = {
     **{k: _NON_NEGATIVE for k in (
         # max_epochs 0: a continued pretraining that only takes over its checkpoint (pretrain.init)
         "seed", "max_epochs", "patience", "round_patience", "lr_patience", "min_delta", "grid_shapes", "grad_clip",
-        "kl_weight", "rounds", "po_sweeps", "tune_sweeps", "insertions")},
+        "kl_weight", "rounds", "po_sweeps", "tune_sweeps", "insertions", "loader_workers")},
     **{k: _BEAM for k in ("beam", "beams", "sweep_beam", "infer_beam", "val_beam_epoch", "val_beam_round",
                           "val_beam")},
     "dropout": _FRACTION, "momentum": _FRACTION, "lr_factor": _OPEN_FRACTION, "baseline_alpha": _UNIT,

@@ -7,11 +7,12 @@ its own config (:class:`plad.learn.rounds.RoundsConfig`, :class:`plad.learn.rl.R
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from plad.device import FP32, Precision
 from plad.domains.base import Domain
 from plad.model.network import PLADNet
 
@@ -26,6 +27,8 @@ class Job:
     seed: int = 0
     #: wall-clock budget of the whole run in seconds, across resumes (see plad.learn.loop.budget_seconds)
     budget_seconds: float = math.inf
+    #: the arithmetic of every training forward pass (:mod:`plad.device`); decoding stays float32
+    precision: Precision = field(default=FP32)
 
     def __post_init__(self) -> None:
         self.out_dir = Path(self.out_dir)

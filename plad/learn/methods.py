@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from plad.data.batching import split_batch, trim_batch
+from plad.device import to_device
 from plad.domains.base import split_padding
 from plad.learn.pbest import PBest
 
@@ -102,8 +103,8 @@ def parse_mixture(text: str) -> Mixture:
 
 
 def _pbest_batch(pbest: PBest, shapes: np.ndarray, idx: np.ndarray, device: torch.device) -> Batch:
-    programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)).to(device))
-    return torch.from_numpy(shapes[idx]).to(device), programs, lengths
+    programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)))
+    return to_device(shapes[idx], device), to_device(programs, device), to_device(lengths, device)
 
 
 def st_source(pbest: PBest, real: np.ndarray, device: torch.device) -> Source:

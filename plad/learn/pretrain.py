@@ -28,6 +28,7 @@ batches of each epoch's permutation in turn, and rank 0 writes the outputs.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import time
 from collections.abc import Iterator
@@ -39,7 +40,7 @@ import torch
 
 from plad.config import ConfigError
 from plad.data.batching import bucketed
-from plad.device import resolve_device
+from plad.device import check_precision, resolve_device, resolve_precision
 from plad.domains.base import pad_programs
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, HISTORY, LAST, PROVENANCE, SUMMARY, Layout
@@ -47,7 +48,7 @@ from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig
 from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
-from plad.learn.synthetic import load_programs, make_batch
+from plad.learn.synthetic import ExecutorPool, load_programs, make_batch
 from plad.learn.train import VAL_LOSS, TrainConfig, fit
 from plad.model.checkpoint import read_checkpoint
 from plad.model.network import Architecture, ModelConfig, PLADNet, count_parameters
@@ -69,6 +70,17 @@ class PretrainConfig:
     real_val_shapes: int = 0
     #: budget of training time, minutes, counted across resumes (None: none)
     max_minutes: float | None = None
+    #: arithmetic of the training forward passes (:mod:`plad.device`): "fp32", "bf16" (autocast) or "auto"
+    #: (bf16 on a CUDA GPU that computes it natively, else fp32: a CPU run is unchanged)
+    precision: str = "fp32"
+    #: compile the encoder with torch.compile: the part of a training step whose input shape is fixed by the
+    #: batch size (the decoder's length changes from batch to batch). It did not help on our CPUs
+    #: (docs/gpu.md); ``python -m bench.gpu_check --compile`` measures it on a GPU
+    compile: bool = False
+    #: worker processes that execute the next batches' synthetic programs on the CPU while the model trains
+    #: (:class:`plad.learn.synthetic.ExecutorPool`); 0: executed in the training process, on its device (CSG's
+    #: executors run on a GPU, ShapeAssembly's runs in Python on the CPU)
+    loader_workers: int = 0
     model: Architecture = field(default_factory=Architecture)
     train: TrainConfig = field(default_factory=TrainConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
@@ -82,6 +94,9 @@ class PretrainConfig:
     #: schedule, Adam's moments kept: a rate that a plateau rule drove to its floor is never resumed) or
     #: "resume" (the saved schedule goes on: the segment trains as the run would have gone on)
     continue_lr: str = "restart"
+
+    def __post_init__(self) -> None:
+        check_precision(self.precision)
 
 
 
@@ -208,6 +223,9 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         if cfg.real_val_shapes else None
     model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
     init_payload = read_init(init_path, cfg, model.cfg) if init_path is not None else None
+    precision = resolve_precision(cfg.precision, device)
+    if cfg.compile:
+        model.encoder.compile()   # in place: the state dict keeps its keys
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     history = out / HISTORY
@@ -226,11 +244,20 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
             for start in dist.chunk_starts(len(perm), bs):
                 yield perm[start:start + bs].numpy()
 
+    pool: ExecutorPool | None = None   # started just before training
+
     def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
-        # grouped by program length, bucket_pool of this rank's batches at a time (plad.data.batching)
+        # grouped by program length, bucket_pool of this rank's batches at a time (plad.data.batching); the
+        # epoch's steps exactly, so that workers execute no batch that is not trained on
         rng = np.random.default_rng([cfg.seed, epoch, dist.rank()])
-        for idx in bucketed(indices(epoch), program_lengths, cfg.train.bucket_pool, rng):
-            yield make_batch(domain, train[torch.from_numpy(idx)], device)
+        rows = (train[torch.from_numpy(idx)] for idx in
+                itertools.islice(bucketed(indices(epoch), program_lengths, cfg.train.bucket_pool, rng),
+                                 cfg.train.steps_per_epoch))
+        if pool is not None:
+            yield from pool.batches(rows, device)
+        else:
+            for r in rows:
+                yield make_batch(domain, r, device)
 
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
     gap_batch = make_batch(domain, val[: max(2, cfg.gap_programs)], device)   # fixed: comparable across epochs
@@ -324,9 +351,14 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
 
     start = time.monotonic()
     init = Init(init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if init_payload else None
-    result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
-                 budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
-                 fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance)
+    pool = ExecutorPool(domain.name, cfg.loader_workers) if cfg.loader_workers else None
+    try:
+        result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
+                     budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
+                     fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance, precision=precision)
+    finally:
+        if pool is not None:
+            pool.close()
     final = validate(model)
     if last.exists():
         record_ = provenance(read_checkpoint(last)["loop"])["provenance"]

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from plad.device import FP32, Precision, to_device
 from plad.domains.base import Domain
 from plad.layout import BEST, STATE
 from plad.learn import distributed as dist
@@ -91,8 +92,8 @@ def masked_log_probs(model: PLADNet, domain: Domain, shapes: torch.Tensor, token
 class Reinforce:
     """One REINFORCE learner: call :meth:`step` with batches of real training shapes."""
 
-    def __init__(self, model: PLADNet, domain: Domain, cfg: RLConfig, seed: int = 0):
-        self.model, self.domain, self.cfg = model, domain, cfg
+    def __init__(self, model: PLADNet, domain: Domain, cfg: RLConfig, seed: int = 0, precision: Precision = FP32):
+        self.model, self.domain, self.cfg, self.precision = model, domain, cfg, precision
         self.opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum)
         self.baseline: float | None = None
         self.batches = 0
@@ -110,7 +111,8 @@ class Reinforce:
         self.baseline = mean_r if self.baseline is None else (
             self.cfg.baseline_alpha * self.baseline + (1 - self.cfg.baseline_alpha) * mean_r)
         model.train()
-        logp = self.log_probs(shapes, tokens, lengths)
+        with self.precision.autocast():   # sampling above stays float32, as every decoding
+            logp = self.log_probs(shapes, tokens, lengths)
         loss = -((r - self.baseline) * logp / lengths.float()).mean() / self.cfg.accumulate
         loss.backward()
         self.batches += 1
@@ -138,7 +140,7 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
     out.mkdir(parents=True, exist_ok=True)
     names = domain.tokens.names
     device = next(model.parameters()).device
-    learner = Reinforce(model, domain, cfg, seed=seed)
+    learner = Reinforce(model, domain, cfg, seed=seed, precision=job.precision)
     learner_file = out / "learner.pt"
 
     def validate() -> float:
@@ -171,7 +173,7 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
         totals: dict[str, float] = {}
         for _ in range(cfg.steps_per_epoch):
             idx = np.sort(rng.choice(len(job.train), size=cfg.batch_size, replace=cfg.batch_size > len(job.train)))
-            step = learner.step(torch.from_numpy(job.train[idx]).to(device))
+            step = learner.step(to_device(job.train[idx], device))
             for k, v in step.items():
                 totals[k] = totals.get(k, 0.0) + v / cfg.steps_per_epoch
         model.eval()

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from plad.device import FP32, Precision
 from plad.domains.base import Domain
 from plad.fsutil import atomic_write
 from plad.layout import BEST, LAST, STATE
@@ -136,7 +137,8 @@ def infer_into_pbest(model: PLADNet, shapes: np.ndarray, pbest: PBest, infer: In
 
 
 def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConfig, out: Path, rnd: int,
-                       n: int, seed: int, max_seconds: float) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                       n: int, seed: int, max_seconds: float,
+                       precision: Precision = FP32) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """This round's wake-sleep data: fine-tune the persistent generator on P_BEST, sample ``n`` programs."""
     device = next(model.parameters()).device
     samples = out / f"ws_round_{rnd:03d}.npz"
@@ -150,7 +152,7 @@ def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConf
         return read(samples)
     gen_file = out / "ws_generator.pt"
     gen = load_generator(gen_file, device)[0] if dist.broadcast(gen_file.exists()) else new_generator(model, cfg)
-    stats = train_generator(gen, pbest, cfg, seed=seed, max_seconds=max_seconds)
+    stats = train_generator(gen, pbest, cfg, seed=seed, max_seconds=max_seconds, precision=precision)
     if not dist.is_main():   # rank 0 samples; the others get the very file it wrote
         return read(io.BytesIO(dist.broadcast(None)))
     save_generator(gen_file, gen, cfg, rnd)
@@ -245,7 +247,7 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         if "ws" in mixture.names:
             ws_programs, ws_shapes, ws_stats = run(
                 f"round {rnd}: wake-sleep generator", wake_sleep_samples, model, domain, pbest, cfg.ws, out, rnd,
-                len(job.train), job.seed * 104_729 + rnd, remaining())
+                len(job.train), job.seed * 104_729 + rnd, remaining(), job.precision)
             stats.update(ws_stats)
             sources["ws"] = ws_source(ws_programs, ws_shapes, device)
         batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd),
@@ -255,7 +257,8 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                      domain=domain.name, token_names=names,
                      objective=Objective("val", metric.higher_is_better), budget_seconds=remaining(),
                      on_unit=(lambda e, row: hooks.on_epoch(rnd, e, row)) if hooks.on_epoch else None,
-                     desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd})
+                     desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd},
+                     precision=job.precision)
         value = run(f"round {rnd}: validate", mean_metric, model, domain, job.val, cfg.val_beam_round,
                     cfg.infer_batch)
         # patience counts training epochs, so that it means the same whatever the epochs per round

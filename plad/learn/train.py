@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from plad.device import FP32, Precision
 from plad.layout import BEST, LAST
 from plad.learn import distributed as dist
 from plad.learn.loop import Limits, Loop, LoopResult, LoopState, Objective, Unit, upgrade_state
@@ -172,6 +173,25 @@ class _LastCheckpoint:
             **(self.extra(state) if self.extra is not None else {})})
 
 
+#: a batch's (loss, accuracy), e.g. the model's loss through :func:`plad.learn.distributed.data_parallel`
+StepLoss = Callable[[Batch], tuple[torch.Tensor, torch.Tensor]]
+
+
+def train_step(model: PLADNet, opt: torch.optim.Optimizer, step_loss: StepLoss, batch: Batch,
+               grad_clip: float | None, precision: Precision = FP32) -> tuple[torch.Tensor, torch.Tensor]:
+    """One optimizer step on ``batch``: the loss's forward pass under ``precision`` (:mod:`plad.device`),
+    backward, gradient-norm clip, update. Returns the (loss, accuracy) tensors, detached: reading them as
+    numbers waits for a GPU, so a caller sums them as tensors and reads them once in a while."""
+    with precision.autocast():
+        loss, acc = step_loss(batch)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if grad_clip:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    opt.step()
+    return loss.detach(), acc.detach()
+
+
 def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         validate: Callable[[PLADNet], dict[str, float]], cfg: TrainConfig, out_dir: str | Path, *,
         domain: str, token_names: list[str], objective: Objective = VAL_LOSS,
@@ -179,7 +199,8 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         on_unit: Callable[[int, dict[str, Any]], None] | None = None,
         loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None,
         desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None,
-        init: Init | None = None, extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> LoopResult:
+        init: Init | None = None, extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+        precision: Precision = FP32) -> LoopResult:
     """Train until early stopping, ``max_epochs`` or the time budget; resume from ``out_dir/last.pt``.
 
     ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
@@ -197,7 +218,8 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     and saved with ``last.pt``; see :class:`Stages`. ``init``: when ``out_dir`` holds no ``last.pt`` of this
     run, start from another run's state as a new segment (see :class:`Init`); ``max_epochs`` and the budget
     then count this segment's epochs and time. ``extra(loop_state)`` returns more keys for ``last.pt`` (e.g.
-    provenance).
+    provenance). ``precision`` is the arithmetic of the training forward passes (:func:`train_step`);
+    validation is ``validate``'s own.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -212,7 +234,11 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         model.train()
         if dist.world() > 1:   # this rank's dropout stream, fixed by (seed, epoch, rank): nothing per rank to save
             torch.manual_seed(dist.rank_seed(seed * 1_000_003 + unit))
-        total, total_acc = 0.0, 0.0
+        # float64 sums on the model's device: the same additions as summing Python floats, without waiting for
+        # the GPU at every step
+        device = next(model.parameters()).device
+        total = torch.zeros((), dtype=torch.float64, device=device)
+        total_acc = torch.zeros((), dtype=torch.float64, device=device)
         it = batches(unit - 1)   # batch streams are numbered from 0
         for i in range(cfg.steps_per_epoch):
             # the warm-up counts from the first step of the run, or of the segment when it restarts the rate
@@ -221,17 +247,11 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
             if step < cfg.warmup_steps:   # linear warm-up; the plateau schedule takes over after it
                 for group in opt.param_groups:
                     group["lr"] = cfg.lr * (step + 1) / cfg.warmup_steps
-            batch = next(it)
-            loss, acc = step_loss(batch)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.grad_clip:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            opt.step()
-            total += float(loss.detach())
-            total_acc += float(acc)
-        metrics = {"train_loss": dist.mean(total / cfg.steps_per_epoch),
-                   "train_acc": dist.mean(total_acc / cfg.steps_per_epoch)}
+            loss, acc = train_step(model, opt, step_loss, next(it), cfg.grad_clip, precision)
+            total += loss.double()
+            total_acc += acc.double()
+        metrics = {"train_loss": dist.mean(float(total) / cfg.steps_per_epoch),
+                   "train_acc": dist.mean(float(total_acc) / cfg.steps_per_epoch)}
         metrics.update(validate(model))
         metrics = dist.broadcast(metrics)   # rank 0's values drive the schedule on every rank
         value = metrics[objective.name]

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from plad.device import FP32, Precision, to_device
 from plad.domains.base import Domain, split_padding
 from plad.fsutil import atomic_write
 from plad.learn import distributed as dist
@@ -81,7 +82,8 @@ class Generator(nn.Module):
     def loss(self, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
              kl_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
         h = F.relu(self.to_hidden(self.net.encode(shapes).flatten(1)))
-        mean, logvar = self.to_stats(h).chunk(2, dim=-1)
+        # float32 statistics: under bf16 autocast the KL term and the sampled code keep float32 (no-op in float32)
+        mean, logvar = self.to_stats(h).float().chunk(2, dim=-1)
         c = mean + torch.randn_like(mean) * torch.exp(0.5 * logvar)
         ce, acc = self.net.loss(shapes, programs, lengths, prefix=self.decode_prefix(c))
         ce = ce * lengths.float().mean()                            # mean per token -> per program
@@ -126,13 +128,14 @@ WS_LOSS = Objective("ws_loss", higher_is_better=False)
 
 
 def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
-                    max_seconds: float = math.inf) -> dict[str, float]:
+                    max_seconds: float = math.inf, precision: Precision = FP32) -> dict[str, float]:
     """Fit the VAE on (execution, program) of every P_BEST entry; early stop on training loss.
 
     Not resumable by itself: a round saves the generator once it is trained,
     and a round killed before that trains it again from the same start.
     Under torchrun each rank trains on its own batches of P_BEST (every rank
-    holds the same P_BEST) with the gradients averaged (DDP).
+    holds the same P_BEST) with the gradients averaged (DDP). ``precision``: the arithmetic of the forward
+    passes (:mod:`plad.device`).
     """
     device = next(gen.parameters()).device
     idx_all = np.nonzero(pbest.has)[0]
@@ -150,9 +153,11 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
         total = 0.0
         for s in range(steps):
             idx = np.sort(order[s * cfg.batch_size:(s + 1) * cfg.batch_size])
-            programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)).to(device))
-            shapes = torch.from_numpy(pbest.executions[idx]).to(device)
-            loss, _ = loss_of(shapes, programs, lengths, cfg.kl_weight)
+            programs, lengths = split_padding(torch.from_numpy(pbest.programs[idx].astype(np.int64)))
+            programs, lengths = to_device(programs, device), to_device(lengths, device)
+            shapes = to_device(pbest.executions[idx], device)
+            with precision.autocast():
+                loss, _ = loss_of(shapes, programs, lengths, cfg.kl_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(gen.parameters(), 1.0)
@@ -222,6 +227,6 @@ def ws_source(programs: np.ndarray, executions: np.ndarray, device: torch.device
 
     def draw(rng: np.random.Generator, n: int):
         idx = rng.choice(len(programs), size=n)
-        p, lengths = split_padding(torch.from_numpy(programs[idx].astype(np.int64)).to(device))
-        return torch.from_numpy(executions[idx]).to(device), p, lengths
+        p, lengths = split_padding(torch.from_numpy(programs[idx].astype(np.int64)))
+        return to_device(executions[idx], device), to_device(p, device), to_device(lengths, device)
     return draw

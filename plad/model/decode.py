@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from plad.device import to_device
 from plad.domains.base import Domain
 from plad.domains.grammar import TokenTable
 from plad.model.network import PLADNet, reorder_caches
@@ -151,7 +152,7 @@ def infer_batched(model: PLADNet, domain: Domain, targets: np.ndarray, beam: int
     device = next(model.parameters()).device
     values, programs, shapes = [], [], []
     for start in tqdm(range(0, len(targets), batch_size), desc=desc, unit="batch", disable=None):
-        inferred = infer_programs(model, domain, torch.from_numpy(targets[start:start + batch_size]).to(device), beam)
+        inferred = infer_programs(model, domain, to_device(targets[start:start + batch_size], device), beam)
         values.append(inferred.values.cpu().numpy())
         programs.extend(inferred.programs)
         shapes.append(inferred.shapes.cpu().numpy())

@@ -327,7 +327,8 @@ class PLADNet(nn.Module):
         target = torch.where(valid, programs, torch.zeros_like(programs))
         tokens_in = torch.cat([torch.full((N, 1), self.cfg.bos, device=programs.device, dtype=torch.long),
                                torch.where(valid, programs, torch.full_like(programs, self.cfg.pad))[:, :-1]], 1)
-        logits = self.forward_prefix(prefix, tokens_in)
+        # float32 logits: under bf16 autocast the cross-entropy still sums in float32 (a no-op in float32)
+        logits = self.forward_prefix(prefix, tokens_in).float()
         nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
         return nll, logits.argmax(-1) == target, valid
 

@@ -42,6 +42,9 @@ class FinetuneStageConfig:
     #: which entry of ``methods`` this run trains (set per DVC stage)
     key: str | None = None
     device: str = "auto"
+    #: arithmetic of the training forward passes of every method (:mod:`plad.device`): "fp32", "bf16"
+    #: (autocast) or "auto" (bf16 on a CUDA GPU that computes it natively, else fp32); decoding stays float32
+    precision: str = "fp32"
     threads: int | None = None
     seed: int = 0
     #: use only the first N training / validation shapes (None: all)
@@ -53,6 +56,11 @@ class FinetuneStageConfig:
     #: the PLAD rounds (every PLAD method); the P_BEST mode is each method's
     plad: RoundsConfig = field(default_factory=RoundsConfig)
     rl: RLConfig = field(default_factory=RLConfig)
+
+    def __post_init__(self) -> None:
+        from plad.device import check_precision
+
+        check_precision(self.precision)
 
 
 def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
@@ -134,7 +142,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     ``hooks`` (optional) run the steps of a PLAD round and hear about each
     round; for RL, ``hooks.on_unit`` hears about each epoch.
     """
-    from plad.device import resolve_device
+    from plad.device import resolve_device, resolve_precision
     from plad.domains import get_domain
     from plad.learn.job import Job
     from plad.learn.loop import budget_seconds
@@ -158,7 +166,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
         prepare_run_dir(out, run_origin(cfg, spec, layout))
     dist.barrier()       # no rank reads the run folder before rank 0 has kept or emptied it
     job = Job(model, domain, train, val, out, seed=cfg.seed,
-              budget_seconds=budget_seconds(minutes))
+              budget_seconds=budget_seconds(minutes), precision=resolve_precision(cfg.precision, device))
     if spec.method == "rl":
         summary = run_rl(job, cfg.rl, on_unit=hooks.on_unit)
     else:
