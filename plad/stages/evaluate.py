@@ -167,6 +167,12 @@ def tracked_evaluate(cfg: EvaluateConfig, ctx: StageContext = StageContext()) ->
         run.log_metrics({f"{s}_seconds_per_shape": report[s]["seconds_per_shape"] for s in cfg.splits})
         floor = report.get(FLOOR, {})
         run.log_metrics({f"floor_{s}_{report['metric']}": floor[s]["mean"] for s in cfg.splits if s in floor})
+        # the row of this result (and of the floor) at MLflow's top level (plad.tracking.rows)
+        kind = {"metric": report["metric"], "higher_is_better": report["higher_is_better"]}
+        test = report.get("test", {})
+        run.log_result(**kind, test=test.get("mean"), seconds_per_shape=test.get("seconds_per_shape"))
+        if "test" in floor:
+            run.log_result(method=FLOOR, **kind, test=floor["test"]["mean"])
         for name in [METRICS, GRID, *[programs_csv(s) for s in cfg.splits]]:
             run.log_artifact(out / name)
     return report

@@ -223,6 +223,11 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
         run.log_metrics({"val_at_seconds": start["val"]}, step=0)
         run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
         run.set_tags({"plad.stopped": summary["stopped"]})
+        from plad.domains import get_domain
+
+        metric = get_domain(cfg.domain).metric
+        run.log_result(metric=metric.name, higher_is_better=metric.higher_is_better, val=summary.get("val"),
+                       train_seconds=summary.get("train_seconds"), stopped=summary["stopped"])
         for name in [SUMMARY, STATE, BEST]:
             run.log_artifact(out / name)
         final = out / ("learner.pt" if cfg.methods[cfg.key].method == "rl" else "current.pt")

@@ -47,6 +47,10 @@ def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) ->
         run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
         run.log_metrics({f"total_{k}": float(v) for k, v in summary.get("totals", {}).items()
                          if isinstance(v, (int, float))})
+        # SP's row: its training, all segments of it when it continues another (its validation metric on the
+        # real shapes is the fine-tuning curves' start)
+        run.log_result(train_seconds=summary.get("totals", {}).get("train_seconds", summary.get("train_seconds")),
+                       stopped=summary.get("stopped"))
         run.log_artifact(out / SUMMARY)
         run.log_artifact(out / HISTORY)
         if (out / PROVENANCE).exists():

@@ -19,6 +19,14 @@ to ``table.md``; ``results/amortization.md`` and ``.png``: metric against
 seconds per shape for the ``amortization.method``'s model at each of
 ``beams``, with test-time refinement, and search only. Missing inputs of
 these are named in the files, not errors.
+
+The MLflow run of the report is nested under the profile's pipeline run
+(:mod:`plad.tracking.rows`), which gets ``table.md``, ``convergence.png``,
+``amortization.png`` (and ``amortization.md``, ``report.json``) as its own
+artifacts; and every row of the tables gets its numbers on its row run
+(``report.json``'s ``rows``: test and validation metric, seconds per shape,
+training seconds, stop reason), so that MLflow's top level holds the same
+numbers as ``table.md`` even where DVC skipped a stage whose output was cached.
 """
 from __future__ import annotations
 
@@ -30,6 +38,8 @@ from plad.config import ConfigError
 from plad.data.files import DataError
 from plad.domains import get_domain
 from plad.eval.report import (
+    MethodResult,
+    Timed,
     amortization_keys,
     amortization_markdown,
     amortization_png,
@@ -43,9 +53,20 @@ from plad.eval.report import (
     timed_from_files,
 )
 from plad.fsutil import atomic_write_text
-from plad.layout import AMORTIZATION_PLOT, AMORTIZATION_TABLE, CONVERGENCE, REPORT, SP, TABLE, Layout
+from plad.layout import (
+    AMORTIZATION_PLOT,
+    AMORTIZATION_TABLE,
+    CONVERGENCE,
+    FLOOR,
+    REPORT,
+    SP,
+    SUMMARY,
+    TABLE,
+    Layout,
+)
 from plad.stages import StageContext, stage_main
-from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags
+from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags, tracking_uri
+from plad.tracking.rows import PIPELINE, results_view_path
 
 
 @dataclass
@@ -127,6 +148,46 @@ def gather_complete(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
     return results
 
 
+def _pretrain_summary(domain: str, layout: Layout) -> dict:
+    """SP's training: ``runs/pretrain/<domain>/summary.json`` ({} when absent, e.g. a report from MLflow alone)."""
+    path = layout.pretrain_dir(domain) / SUMMARY
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def result_rows(results: list[MethodResult], floor: float | None, timed: dict[str, Timed | None],
+                pretrain: dict) -> dict[str, dict]:
+    """One domain's rows of the tables as MLflow's top level shows them: {result key: {test, val,
+    seconds_per_shape, train_seconds, stopped}} (only the values known).
+
+    SP's validation value is the first point of the fine-tuning curves (the pretrained model, as
+    :func:`champion` counts it), its training that of pretraining; the floor's is its test value alone.
+    """
+    def known(**values) -> dict:
+        return {k: v for k, v in values.items() if v is not None}
+
+    start = next((r.curve[0][1] for r in results if r.curve), None)
+    # all of pretraining when it continued another run (its segments' total), else this run's
+    pretrain_seconds = pretrain.get("totals", {}).get("train_seconds", pretrain.get("train_seconds"))
+    rows: dict[str, dict] = {}
+    for r in results:
+        t = timed.get(r.key)
+        if r.key == SP:
+            rows[r.key] = known(test=r.test, val=start, seconds_per_shape=t.seconds_per_shape if t else None,
+                                train_seconds=pretrain_seconds, stopped=pretrain.get("stopped"))
+        else:
+            rows[r.key] = known(test=r.test, val=r.val_best, seconds_per_shape=t.seconds_per_shape if t else None,
+                                train_seconds=r.train_seconds, stopped=r.stopped)
+    for key, t in timed.items():
+        if key not in rows and t is not None:
+            rows[key] = {"test": t.test, "seconds_per_shape": t.seconds_per_shape}
+    if floor is not None:
+        rows[FLOOR] = {"test": floor}
+    return rows
+
+
 def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
     results = gather_complete(cfg, layout)
     out = layout.results_dir
@@ -149,8 +210,9 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
     for d, rs in results.items():
+        timed = timed_from_files(d, list(dict.fromkeys([r.key for r in rs] + cfg.beyond + keys)), layout)
         entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs},
-                 "floor": floors[d]}
+                 "floor": floors[d], "rows": result_rows(rs, floors[d], timed, _pretrain_summary(d, layout))}
         best = champion(cfg, d, rs)
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}
@@ -166,10 +228,17 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
     out = ctx.layout.results_dir
     if cfg.source == "files":
         gather_complete(cfg, ctx.layout)   # missing evaluations fail before an MLflow run (or store) exists
-    with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run", params_path=ctx.params) as run:
+    with StageRun("report", ",".join(cfg.domains), asdict(cfg), out / ".report_run", params_path=ctx.params,
+                  row=PIPELINE) as run:
         summary = report(cfg, ctx.layout)
         for name in [TABLE, CONVERGENCE, REPORT, AMORTIZATION_TABLE, AMORTIZATION_PLOT]:
             run.log_artifact(out / name)
+            run.log_row_artifact(out / name)
+        for d, entry in summary["domains"].items():
+            metric = get_domain(d).metric
+            for key, values in entry["rows"].items():
+                run.log_result(domain=d, method=key, metric=metric.name, higher_is_better=metric.higher_is_better,
+                               **values)
         if cfg.register:
             for d, entry in summary["domains"].items():
                 if "champion" not in entry:
@@ -195,6 +264,9 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                 print(f"report: registered {name} version {version} ({key}, validation {metric.name} {val:.6g}) "
                       f"as {name}@champion{was}", file=sys.stderr)
             atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
+            run.log_row_artifact(out / REPORT)   # with the champions
+        print(f"report: MLflow's results view: `mlflow ui --backend-store-uri {tracking_uri()}`, then "
+              f"http://127.0.0.1:5000/{results_view_path(run.experiment_id)}", file=sys.stderr)
     return summary
 
 

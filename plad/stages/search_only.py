@@ -75,6 +75,9 @@ def tracked_search_only(cfg: SearchOnlyConfig, ctx: StageContext = StageContext(
         report = search_only(cfg, ctx.layout)
         run.log_metrics({f"{s}_{report['metric']}": report[s]["mean"] for s in cfg.splits})
         run.log_metrics({f"{s}_seconds_per_shape": report[s]["seconds_per_shape"] for s in cfg.splits})
+        test = report.get("test", {})
+        run.log_result(metric=report["metric"], higher_is_better=report["higher_is_better"], test=test.get("mean"),
+                       seconds_per_shape=test.get("seconds_per_shape"))
         for name in [METRICS, *[programs_csv(s) for s in cfg.splits]]:
             run.log_artifact(out / name)
     return {k: v for k, v in report.items() if k != "config"}

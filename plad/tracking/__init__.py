@@ -8,6 +8,9 @@ so ``import plad.tracking`` stays cheap):
   a broken one a one-line :class:`StoreError`) and the experiment;
 * :mod:`plad.tracking.runs`: :class:`StageRun`, one run per stage execution
   (resumable, nested child runs per round), and reading finished runs back;
+* :mod:`plad.tracking.rows`: the experiment's top level, one run per (domain,
+  method) with its stage runs nested under it, and the experiment's kind and
+  saved results view;
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
   resolved to checkpoint files;
 * :mod:`plad.tracking.serving`: a checkpoint as a pyfunc model, logged as MLflow

@@ -21,6 +21,16 @@ import yaml
 
 from plad.config import profile_path
 from plad.fsutil import atomic_write_text
+from plad.layout import SP
+from plad.tracking.rows import (
+    PIPELINE,
+    RESULT,
+    Row,
+    log_result,
+    mark_training_experiment,
+    row_run,
+    set_row_status,
+)
 from plad.tracking.serving import log_pyfunc
 from plad.tracking.store import (
     DEFAULT_EXPERIMENT,
@@ -174,15 +184,27 @@ class StageRun:
     experiment; otherwise a new run starts. Params are logged only for a new run.
     Exiting ends the run FINISHED, or FAILED (KILLED for KeyboardInterrupt) when
     an exception escapes; exceptions always propagate.
+
+    The run is nested under its row run (:mod:`plad.tracking.rows`): ``row="result"``
+    (the default) the row of ``(profile, domain, method)`` (method ``sp`` when none
+    is given), ``row="pipeline"`` the profile's pipeline run, ``row=None`` none (a
+    top-level run). Inside another active MLflow run (e.g. a flow's own) the run
+    nests under that one instead. :meth:`log_result` writes the row's numbers.
     """
 
     def __init__(self, stage: str, domain: str, params: Mapping[str, Any] | Any,
                  run_dir: str | os.PathLike, *, method: str | None = None,
                  tags: Mapping[str, Any] | None = None, experiment: str = DEFAULT_EXPERIMENT,
-                 params_path: str | os.PathLike = "params.yaml"):
+                 params_path: str | os.PathLike = "params.yaml", row: str | None = RESULT):
+        if row not in (RESULT, PIPELINE, None):
+            raise ValueError(f"StageRun row {row!r}: expected {RESULT!r}, {PIPELINE!r} or None")
         self.stage = stage
         self.domain = domain
         self.method = method
+        self.row_kind = row
+        self.row: Row | None = None
+        self.row_id: str | None = None
+        self._uri: str | None = None
         self.params = flatten_params(params if params is not None else {})
         self.run_dir = Path(run_dir)
         self.extra_tags = dict(tags or {})
@@ -200,6 +222,12 @@ class StageRun:
         if self._run_id is None:
             raise RuntimeError("StageRun.run_id is only known once the run has started")
         return self._run_id
+
+    @property
+    def experiment_id(self) -> str:
+        if self._exp_id is None:
+            raise RuntimeError("StageRun.experiment_id is only known once the run has started")
+        return self._exp_id
 
     @property
     def run_file(self) -> Path:
@@ -242,24 +270,36 @@ class StageRun:
             return self._start(uri)
 
     def _start(self, uri: str) -> StageRun:
+        self._uri = uri
         mlflow = mlflow_module()
         mlflow_client = mlflow.MlflowClient()
         experiment_id = self._exp_id = ensure_experiment(mlflow_client, uri, self.experiment)
+        mark_training_experiment(mlflow_client, experiment_id)
         tags = self._tags = self.tags
         previous = self._resumable(mlflow_client, uri, experiment_id)
         nested = mlflow.active_run() is not None   # e.g. a flow's own run around the stage
+        if not nested and self.row_kind is not None:
+            profile = tags["plad.profile"]
+            self.row = Row(profile) if self.row_kind == PIPELINE else Row(profile, self.domain, self.method or SP)
+            self.row_id = row_run(mlflow_client, uri, experiment_id, self.row)
         if previous is not None:
             active = mlflow.start_run(run_id=previous, nested=nested)
             self.resumed = True
+            if self.row_id is not None and "mlflow.parentRunId" not in active.data.tags:
+                tags = {**tags, "mlflow.parentRunId": self.row_id}   # a run from before rows: under its row
             mlflow_client.log_batch(previous, tags=_tag_entities(tags))
         else:
-            name = "/".join(x for x in (self.stage, self.method, self.domain) if x)
-            active = mlflow.start_run(experiment_id=experiment_id, run_name=name,
-                                      nested=nested, tags=tags)
+            # under its row the stage's name is enough (the row names domain and method)
+            name = self.stage if self.row_id is not None else \
+                "/".join(x for x in (self.stage, self.method, self.domain) if x)
+            active = mlflow.start_run(experiment_id=experiment_id, run_name=name, nested=nested,
+                                      parent_run_id=self.row_id, tags=tags)
             self.resumed = False
         self._run_id = active.info.run_id
         self._stack = [self._run_id]
         try:
+            if self.row_id is not None:
+                set_row_status(mlflow_client, self.row_id, "RUNNING")
             if not self.resumed:
                 _log_params(self._run_id, self.params)
             atomic_write_text(self.run_file, json.dumps({
@@ -297,6 +337,8 @@ class StageRun:
             if active.info.run_id == self._run_id:
                 break
         self._stack = []
+        if self.row_id is not None:
+            set_row_status(client(), self.row_id, status)
 
     # -- logging ---------------------------------------------------------------------------
     def _current(self) -> str:
@@ -323,6 +365,31 @@ class StageRun:
             mlflow_client.log_artifacts(self._current(), str(path), artifact_path)
         else:
             mlflow_client.log_artifact(self._current(), str(path), artifact_path)
+
+    # -- the row -----------------------------------------------------------------------------
+    def log_result(self, *, domain: str | None = None, method: str | None = None, **values: Any) -> None:
+        """The headline numbers of a result row (:func:`plad.tracking.rows.log_result`'s keywords: ``metric``,
+        ``higher_is_better``, ``test``, ``val``, ``seconds_per_shape``, ``train_seconds``, ``stopped``).
+
+        Without ``domain``/``method``: this run's own row. With them: that row of the same profile (created
+        if needed), e.g. the floor baseline that SP's evaluation also scores, or every row from the report.
+        """
+        if self.row is None or self._exp_id is None:
+            raise RuntimeError("StageRun.log_result: this run has no row (row=None, or inside another run)")
+        if domain is None and method is None:
+            row, run_id = self.row, self.row_id
+        else:
+            row = Row(self.row.profile, domain or self.domain, method or self.method or SP)
+            run_id = row_run(client(), self._uri, self._exp_id, row)
+        if row.kind != RESULT:
+            raise RuntimeError(f"StageRun.log_result: {row.name()} is not a result row")
+        log_result(client(), run_id, row, **values)
+
+    def log_row_artifact(self, path: str | os.PathLike, artifact_path: str | None = None) -> None:
+        """A file as an artifact of this run's row (e.g. the report's table on the pipeline run)."""
+        if self.row_id is None:
+            raise RuntimeError("StageRun.log_row_artifact: this run has no row")
+        client().log_artifact(self.row_id, str(path), artifact_path)
 
     @contextlib.contextmanager
     def nested(self, name: str, **tags: Any) -> Iterator[ChildRun]:

@@ -91,7 +91,7 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
         keys = set(evaluated[evaluated["tags.plad.domain"] == domain]["tags.plad.method"])
         assert keys == {"sp", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
                         *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10))}
-    finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.mlflow.parentRunId"].isna()]
+    finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.plad.round"].isna()]
     for domain in DOMAINS:
         mine = finetuned[finetuned["tags.plad.domain"] == domain]
         assert set(mine["tags.plad.method"]) == set(METHODS) | {"lest_st_per_round", "lest_st_ws_search"}
@@ -110,6 +110,51 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     model = mlflow.pyfunc.load_model(f"runs:/{pre['run_id']}/model")  # the logged model loads and infers
     out = model.predict(np.zeros((2, 64, 64), dtype=bool) | (np.arange(64) > 31)[None, None, :])
     assert len(out) == 2 and "program" in out.columns
+
+
+def test_smoke_repro_top_level_is_the_results_table(smoke_run):
+    """MLflow's top level: one row run per (domain, result key) named with its test metric, and the pipeline's;
+    every stage run nested under its row (plad.tracking.rows)."""
+    work, env, *_ = smoke_run
+    import mlflow
+
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    client = mlflow.MlflowClient()
+    experiment = client.get_experiment_by_name("plad")
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
+    runs = mlflow.search_runs(experiment_names=["plad"])
+    top = runs[runs["tags.mlflow.parentRunId"].isna()]
+    assert set(top["tags.plad.row"]) == {"result", "pipeline"}          # no stage run at the top level
+    rows = top[top["tags.plad.row"] == "result"]
+    keys = {"sp", "floor", "search", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
+            *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10))}
+    for domain in DOMAINS:
+        mine = rows[rows["tags.plad.domain"] == domain]
+        assert sorted(mine["tags.plad.method"]) == sorted(keys)          # one row each
+        for _, row in mine.iterrows():
+            key = row["tags.plad.method"]
+            test = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())["test"]["mean"]
+            metric = "chamfer" if domain == "csg2d" else "iou"
+            assert row["metrics.test_metric"] == pytest.approx(test, abs=1e-6)
+            assert row["tags.mlflow.runName"] == f"{domain} · {key} · {metric} {test:.4g}"
+        for key in METHODS:   # fine-tuned: validation value, training time and stop reason under the same names
+            row = mine[mine["tags.plad.method"] == key].iloc[0]
+            assert row["metrics.val_metric"] > 0 and row["metrics.train_seconds"] > 0
+            assert row["tags.plad.stopped"] in ("max_rounds", "max_epochs", "budget", "patience")
+            assert row["metrics.seconds_per_shape"] > 0
+    by_id = top.set_index("run_id")
+    stages = runs[runs["tags.plad.stage"].notna() & runs["tags.plad.round"].isna()]
+    for _, run in stages.iterrows():
+        parent = by_id.loc[run["tags.mlflow.parentRunId"]]
+        if run["tags.plad.stage"] == "report":
+            assert parent["tags.plad.row"] == "pipeline"
+        else:
+            assert (parent["tags.plad.domain"], parent["tags.plad.method"]) == \
+                (run["tags.plad.domain"], run["tags.plad.method"] if run["tags.plad.stage"] != "pretrain" else "sp")
+    pipeline = top[top["tags.plad.row"] == "pipeline"].iloc[0]
+    assert pipeline["tags.mlflow.runName"] == "pipeline · smoke"
+    artifacts = {a.path for a in client.list_artifacts(pipeline["run_id"])}
+    assert {"table.md", "convergence.png", "amortization.png"} <= artifacts
 
 
 def test_smoke_repro_is_up_to_date_afterwards(smoke_run):
