@@ -130,9 +130,10 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
         row = {"mean": round(float(values.mean()), 6), "n": int(len(values))}
         if cfg.refine:
             row["network_mean"] = row["mean"]
-            programs, values, shapes = refine_all(domain.name, programs, targets, cfg.refine_config,
-                                                  cfg.refine_workers)
+            programs, values, shapes, timed = refine_all(domain.name, programs, targets, cfg.refine_config,
+                                                         cfg.refine_workers)
             row["mean"] = round(float(values.mean()), 6)
+            row["refine_stopped_by_time"] = timed
         seconds = time.monotonic() - start
         row.update(seconds=round(seconds, 1), shapes_per_second=round(len(values) / max(seconds, 1e-9), 2),
                    seconds_per_shape=seconds / n, network_seconds_per_shape=network / n,
