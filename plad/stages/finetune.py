@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from plad.learn import distributed as dist
 from plad.learn.methods import MethodConfig
 from plad.learn.rl import RLConfig
 from plad.learn.rounds import RoundHooks, RoundsConfig
+from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 
 
@@ -80,6 +82,14 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
             raise ConfigError(f"finetune.methods.{cfg.key}.search: RL has no P_BEST to search for")
         check(m.search, get_domain(cfg.domain), f"finetune.methods.{cfg.key}.search")
     return m
+
+
+def method_params(cfg: FinetuneStageConfig) -> dict:
+    """The run's params: the section with only this run's entry of ``methods`` (what its numbers depend on;
+    MLflow's params and the summary's ``params_hash``)."""
+    params = asdict(cfg)
+    params["methods"] = {cfg.key: params["methods"][cfg.key]} if cfg.key in params["methods"] else {}
+    return params
 
 
 def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np.ndarray, np.ndarray]:
@@ -142,6 +152,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     from plad.learn.rounds import run_rounds
     from plad.model.checkpoint import load_model
 
+    started = time.monotonic()
     spec = method_of(cfg)
     hooks = hooks or RoundHooks()
     if cfg.threads:
@@ -169,7 +180,8 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
         summary = run_rounds(job, spec, cfg.plad, hooks)
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode,
                "max_minutes": minutes, **summary,
-               "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
+               "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val)),
+               "provenance": stamp(method_params(cfg), started)}
     if dist.is_main():
         text = json.dumps(summary, indent=2) + "\n"
         atomic_write_text(job.out_dir / SUMMARY, text)
@@ -190,9 +202,7 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
     out = ctx.layout.finetune_dir(cfg.domain, str(cfg.key))
     # before the MLflow run: a stale run folder's mlflow_run.json must not be resumed either
     prepare_run_dir(out, run_origin(cfg, method_of(cfg), ctx.layout))
-    params = asdict(cfg)
-    params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only
-    with StageRun("finetune", cfg.domain, params, out, method=cfg.key, params_path=ctx.params) as run:
+    with StageRun("finetune", cfg.domain, method_params(cfg), out, method=cfg.key, params_path=ctx.params) as run:
         epochs: list[tuple[int, dict]] = []
 
         def on_epoch(rnd: int, epoch: int, metrics: dict) -> None:
@@ -214,7 +224,7 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
         start = read_state(out / STATE).history[0]   # the pretrained model's validation metric, at 0 s
         run.log_metrics({"val_at_seconds": start["val"]}, step=0)
         run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
-        run.set_tags({"plad.stopped": summary["stopped"]})
+        run.set_tags({"plad.stopped": summary["stopped"], "plad.stopped_by_time": summary["stopped_by_time"]})
         for name in [SUMMARY, STATE, BEST]:
             run.log_artifact(out / name)
         final = out / ("learner.pt" if cfg.methods[cfg.key].method == "rl" else "current.pt")

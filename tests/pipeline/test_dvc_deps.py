@@ -307,11 +307,13 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
                               domain)
         splits = p["evaluate"][domain]["splits"]
         model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
+        # SP's metrics record how its pretraining ended (a fine-tuned model's summary is in its run folder)
+        models = [model, layout.pretrain_dir(domain) / SUMMARY] if method == SP else [model]
         outs = [*(out / programs_csv(s) for s in splits), out / GRID, out / METRICS]
         if method == SP:   # the floor baseline is evaluated with SP
             floor = layout.eval_dir(FLOOR, domain)
             outs += [*(floor / programs_csv(s) for s in splits), floor / METRICS]
-        return rel([model, layout.prepared(domain)]), rel(outs)
+        return rel([*models, layout.prepared(domain)]), rel(outs)
     if stage.group == "finetune":
         return rel([layout.model(domain), layout.prepared(domain)]), \
             rel([layout.finetune_dir(domain, method), layout.finetune_summary(domain, method)])
