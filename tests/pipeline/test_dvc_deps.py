@@ -326,6 +326,9 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         ins += [layout.finetune_dir(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.finetune_summary(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.model(d) for d in p["domains"]]   # the champion may be the pretrained model
+        # where each column's numbers come from: SP's pretraining and the floor
+        ins += [layout.pretrain_dir(d) / SUMMARY for d in p["domains"]]
+        ins += [layout.eval_dir(FLOOR, d) / METRICS for d in p["domains"]]
         out = layout.results_dir
         return rel(ins), rel([out / TABLE, out / CONVERGENCE, out / REPORT, out / AMORTIZATION_TABLE,
                               out / AMORTIZATION_PLOT])
