@@ -2,9 +2,12 @@
 
 ``--set key=<name>`` picks an entry of ``finetune.methods``: a PLAD mixture
 (``st``, ``lest``, ``ws``, ``lest+st``, ``lest+st+ws``, with optional weights)
-or ``rl`` (the REINFORCE baseline), and the P_BEST mode. Every method gets the
-same wall-clock budget (``max_minutes``) and the same model selection on the
-validation shapes. Starts from the pretrained model and the prepared shapes
+or ``rl`` (the REINFORCE baseline), and the P_BEST mode. The work is fixed:
+the method's ``max_rounds`` (at most ``plad.max_rounds``, the default; RL:
+``rl.max_epochs``) and the epochs and patience of each round; ``max_minutes``
+is a wall-clock safety net, and a run it stopped (or a time limit inside a
+round) is marked ``stopped_by_time`` in the summary. Every method has the
+same model selection on the validation shapes. Starts from the pretrained model and the prepared shapes
 and writes to ``runs/finetune/<domain>/<key>/`` (:mod:`plad.layout`):
 ``best.pt`` (the selected model), ``state.json`` (per-round history with
 wall-clock seconds), ``summary.json`` (also copied to
@@ -49,7 +52,7 @@ class FinetuneStageConfig:
     #: use only the first N training / validation shapes (None: all)
     train_limit: int | None = None
     val_limit: int | None = None
-    #: wall-clock budget of every method, in minutes (None: none); the run's only budget knob
+    #: wall-clock safety net of every method, in minutes (None: none): the rounds and epochs fix the work
     max_minutes: float | None = None
     methods: dict[str, MethodConfig] = field(default_factory=dict)
     #: the PLAD rounds (every PLAD method); the P_BEST mode is each method's
@@ -74,6 +77,10 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
             raise ConfigError(f"finetune.methods.{cfg.key}.method: {err}") from None
     if m.pbest_mode not in MODES:
         raise ConfigError(f"finetune.methods.{cfg.key}.pbest_mode {m.pbest_mode!r}: one of {', '.join(MODES)}")
+    if m.max_rounds is not None and m.method == "rl":
+        raise ConfigError(f"finetune.methods.{cfg.key}.max_rounds: RL has no rounds; its epochs are rl.max_epochs")
+    if m.max_rounds is not None and m.max_rounds < 1:
+        raise ConfigError(f"finetune.methods.{cfg.key}.max_rounds = {m.max_rounds}: expected at least 1")
     if m.search is not None:
         from plad.domains import get_domain
         from plad.learn.pbest_search import check
@@ -108,14 +115,15 @@ ORIGIN = "origin.json"
 
 def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> dict:
     """What a fine-tuning run starts from and would redo differently: the pretrained model's and the real
-    shapes' sha256, the method (without its budget: a longer budget extends a run) and the shape limits.
+    shapes' sha256, the method (without its budget and rounds: more of either extends a run) and the shape
+    limits.
 
     The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
     the pretrained model changes; this is what tells a resumable run from a stale one.
     """
     from plad.data.files import _sha256_file
 
-    method = {k: v for k, v in asdict(spec).items() if k != "max_minutes"}
+    method = {k: v for k, v in asdict(spec).items() if k not in ("max_minutes", "max_rounds")}
     return {"model_sha256": _sha256_file(layout.model(cfg.domain)),
             "data_sha256": _sha256_file(layout.prepared(cfg.domain)),
             "method": method, "seed": cfg.seed, "train_limit": cfg.train_limit, "val_limit": cfg.val_limit,
@@ -164,6 +172,9 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
     minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
+    # the method's rounds, capped by plad.max_rounds (a profile caps every method with one key)
+    rounds = cfg.plad if spec.max_rounds is None else replace(cfg.plad, max_rounds=min(spec.max_rounds,
+                                                                                       cfg.plad.max_rounds))
     out = layout.finetune_dir(cfg.domain, str(cfg.key))
     if dist.is_main():   # (again, after tracked_finetune: hashing two small files is cheap)
         prepare_run_dir(out, run_origin(cfg, spec, layout))
@@ -177,9 +188,10 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
             from plad.learn.pbest_search import PBestSearch
 
             hooks = replace(hooks, after_infer=PBestSearch(domain, spec.search, job.out_dir, cfg.seed).after_infer)
-        summary = run_rounds(job, spec, cfg.plad, hooks)
+        summary = run_rounds(job, spec, rounds, hooks)
+    work = {"max_epochs": cfg.rl.max_epochs} if spec.method == "rl" else {"max_rounds": rounds.max_rounds}
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode,
-               "max_minutes": minutes, **summary,
+               "max_minutes": minutes, **work, **summary,
                "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val)),
                "provenance": stamp(method_params(cfg), started)}
     if dist.is_main():
