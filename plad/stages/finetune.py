@@ -23,6 +23,7 @@ on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
 from __future__ import annotations
 
 import json
+import random
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -171,6 +172,10 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     domain = get_domain(name)
     train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
+    # Python's and NumPy's global generators: no training step draws from them, but every last.pt saves
+    # their state, which must not differ between two runs of the stage
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
     minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
     # the method's rounds, capped by plad.max_rounds (a profile caps every method with one key)
     rounds = cfg.plad if spec.max_rounds is None else replace(cfg.plad, max_rounds=min(spec.max_rounds,

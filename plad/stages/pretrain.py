@@ -8,10 +8,13 @@ numbers come from (``provenance``: commit, params hash, threads, wall seconds, m
 from __future__ import annotations
 
 import json
+import random
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+
+import numpy as np
 
 from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
@@ -52,6 +55,10 @@ def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) ->
 
     started = time.monotonic()
     load_programs(ctx.layout.synthetic(cfg.domain))  # fail before any MLflow run starts
+    # Python's and NumPy's global generators: no training step draws from them, but last.pt saves their
+    # state, which must not differ between two runs of the stage
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
     init = resolve_init(cfg, ctx.layout)
     if not dist.is_main():   # one MLflow run per training, rank 0's
         return pretrain(cfg, ctx.layout, init_path=init)
