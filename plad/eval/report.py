@@ -11,6 +11,12 @@ evaluation ``metrics.json`` and fine-tuning ``state.json``/``summary.json``)
 or from MLflow alone (the ``evaluate`` and ``finetune`` runs' metrics), into
 the same :class:`MethodResult` records, so the report can be rebuilt from
 either. Rendering is a pure function of those records.
+
+Where each column's numbers come from (:class:`Column`, from the files'
+``provenance`` blocks, :mod:`plad.provenance`; files only, whatever the
+source): the commit most of them were computed at, the numbers from another
+commit (or with none recorded), the stages' wall time, and the results a
+wall-clock limit shaped ("stopped by time"). The tables mark those numbers.
 """
 from __future__ import annotations
 
@@ -24,13 +30,13 @@ from pathlib import Path
 from plad.data.files import DataError
 from plad.domains import get_domain
 from plad.fsutil import atomic_write
-from plad.layout import FLOOR, METRICS, SEARCH, STATE, Layout, eval_key
+from plad.layout import FLOOR, METRICS, SEARCH, STATE, SUMMARY, Layout, eval_key
 from plad.learn.loop import read_state, upgrade_summary
 from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
 
 LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
           "lest_st_ws": "LEST+ST+WS", SEARCH: "search, no network",
-          "lest_st_ws_search": "LEST+ST+WS + search-seeded P_BEST"}
+          "lest_st_ws_search": "LEST+ST+WS + search-seeded P_BEST", FLOOR: "floor"}
 
 
 def label(key: str) -> str:
@@ -53,6 +59,8 @@ class MethodResult:
     val_best: float | None = None                     # validation metric of the selected model
     rounds: int | None = None
     stopped: str | None = None
+    #: a wall-clock limit shaped the number (its training's or its evaluation's); None: not known
+    stopped_by_time: bool | None = None
 
 
 # -- gathering ------------------------------------------------------------------------------------
@@ -70,6 +78,7 @@ def from_files(domain: str, keys: list[str], layout: Layout) -> list[MethodResul
             s = upgrade_summary(json.loads(summary.read_text()))
             res.stopped, res.train_seconds = s.get("stopped"), s.get("train_seconds")
             res.rounds, res.val_best = s.get("units"), s.get("val")
+        res.stopped_by_time = number_record(domain, key, layout).stopped_by_time
         out.append(res)
     return out
 
@@ -129,12 +138,212 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
             m = upgrade_summary({**m, "metric": metric})   # runs logged by older versions
             res.rounds = int(m["units"]) if "units" in m else None
             res.stopped = ft.tags.get("plad.stopped")
+            timed = ft.tags.get("plad.stopped_by_time")
+            res.stopped_by_time = timed == "True" if timed is not None else res.stopped == "budget"
             # "val" is logged per round (step = round) and once more for the selection; older runs: val_<metric>
             val_key = "val" if "val" in ft.metrics else f"val_{metric}"
             history = metric_history(ft.run_id, val_key) if val_key in ft.metrics else []
             res.val_best = scorer.best_value(v for _, v in history) if history else m.get("val")
         out.append(res)
     return out
+
+
+# -- where the numbers come from ------------------------------------------------------------------
+@dataclass
+class NumberRecord:
+    """Where one number of a column comes from: the files behind it (its evaluation and, for a trained model,
+    its training run's summary), read from their ``provenance`` blocks."""
+
+    key: str
+    #: (file, commit or None) of every file behind the number that exists
+    commits: list[tuple[str, str | None]] = field(default_factory=list)
+    dirty: bool = False
+    #: wall seconds of the stages behind the number (a training counts its time across resumes)
+    wall_seconds: float = 0.0
+    #: files behind the number that recorded their wall seconds, of how many
+    timed_files: int = 0
+    files: int = 0
+    #: a wall-clock limit shaped the number; None: no file says (written before the flag existed)
+    stopped_by_time: bool | None = None
+
+
+def _training_summary(domain: str, key: str, layout: Layout) -> Path | None:
+    """The run summary of the model behind result ``key`` (SP's pretraining, a method's fine-tuning; a beam of
+    the sweep or a refined evaluation: its method's), None for search and the floor."""
+    if key in (SEARCH, FLOOR):
+        return None
+    method = key[: -len("_refined")] if key.endswith("_refined") else key
+    head, _, beam = method.rpartition("_beam")
+    method = head if head and beam.isdigit() else method
+    if method == "sp":
+        return layout.pretrain_dir(domain) / SUMMARY
+    return layout.finetune_summary(domain, method)
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _timed(record: dict) -> bool | None:
+    """A metrics file's ``stopped_by_time``; for a run summary written before the flag, its budget stop."""
+    if "stopped_by_time" in record:
+        return bool(record["stopped_by_time"])
+    if "stopped" in record:
+        return record["stopped"] == "budget"
+    return None
+
+
+def number_record(domain: str, key: str, layout: Layout) -> NumberRecord:
+    """The :class:`NumberRecord` of result ``key`` of ``domain`` from the layout's files."""
+    rec = NumberRecord(key)
+    paths = [layout.eval_dir(key, domain) / METRICS]
+    training = _training_summary(domain, key, layout)
+    if training is not None:
+        paths.append(training)
+    flags = []
+    for path in paths:
+        data = _read_json(path)
+        if data is None:
+            continue
+        rec.files += 1
+        prov = data.get("provenance") or {}
+        rec.commits.append((str(path), prov.get("commit")))
+        rec.dirty |= bool(prov.get("dirty"))
+        wall = prov.get("wall_seconds")
+        if wall is not None:
+            # a training resumed after a kill: the last call's wall seconds, its loop's time across resumes
+            rec.wall_seconds += max(float(wall), float(data.get("train_seconds") or 0.0))
+            rec.timed_files += 1
+        flags.append(_timed(data))
+    known = [f for f in flags if f is not None]
+    rec.stopped_by_time = any(known) if known else None
+    return rec
+
+
+@dataclass
+class Column:
+    """Where a domain's column comes from."""
+
+    domain: str
+    #: the commit most of the column's files were computed at (None: none recorded)
+    commit: str | None
+    #: some file at that commit was computed with code or params that differ from it
+    dirty: bool
+    #: result key -> the other commit(s) behind it ("not recorded" for files without provenance)
+    others: dict[str, list[str]]
+    wall_seconds: float
+    timed_files: int
+    files: int
+    #: result keys whose numbers a wall-clock limit shaped
+    stopped_by_time: list[str]
+    #: result keys whose files do not say whether a limit shaped them (written before the flag)
+    stop_unknown: list[str]
+    #: result key -> its record
+    records: dict[str, NumberRecord] = field(default_factory=dict)
+
+
+NOT_RECORDED = "not recorded"
+
+
+def column(domain: str, keys: list[str], layout: Layout) -> Column:
+    """The :class:`Column` of ``domain`` over result ``keys`` (the table's rows, the rows beyond the paper, the
+    amortization sweep's) and the floor: the files of their evaluations and trainings."""
+    records = {k: number_record(domain, k, layout) for k in dict.fromkeys([*keys, FLOOR])}
+    records = {k: r for k, r in records.items() if r.files}
+    counts: dict[str, int] = {}
+    for r in records.values():
+        for _, c in r.commits:
+            if c is not None:
+                counts[c] = counts.get(c, 0) + 1
+    main = max(counts, key=lambda c: counts[c]) if counts else None   # ties: the first one met, row order
+    others: dict[str, list[str]] = {}
+    for k, r in records.items():
+        differ = sorted({c or NOT_RECORDED for _, c in r.commits if c != main})
+        if differ and main is not None:
+            others[k] = differ
+    dirty = any(r.dirty for r in records.values() if any(c == main for _, c in r.commits))
+    wall = sum(r.wall_seconds for r in records.values())
+    timed_files = sum(r.timed_files for r in records.values())
+    files = sum(r.files for r in records.values())
+    return Column(domain, main, dirty, others, wall, timed_files, files,
+                  [k for k, r in records.items() if r.stopped_by_time],
+                  [k for k, r in records.items() if r.stopped_by_time is None], records)
+
+
+def _hours(seconds: float) -> str:
+    minutes = round(seconds / 60)
+    return f"{minutes // 60} h {minutes % 60} min" if minutes >= 60 else f"{seconds / 60:.1f} min"
+
+
+def _short(commit: str | None) -> str:
+    return commit[:7] if commit and commit != NOT_RECORDED else (commit or NOT_RECORDED)
+
+
+#: marks of a number in the tables (explained under the tables)
+OTHER_COMMIT, BY_TIME = "*", "†"
+
+
+def marks(columns: dict[str, Column] | None, domain: str, key: str) -> str:
+    """The marks of result ``key`` in ``domain``'s column: another commit, stopped by time."""
+    c = (columns or {}).get(domain)
+    if c is None:
+        return ""
+    return (OTHER_COMMIT if key in c.others else "") + (BY_TIME if key in c.stopped_by_time else "")
+
+
+def columns_markdown(columns: dict[str, Column], listed: list[str] | None = None) -> str:
+    """Per column: its commit, the numbers from another commit, the stages' wall time, what stopped by time.
+
+    ``listed``: the result keys named in the rows on other commits and stops (the floor always; default: all);
+    the commit and the wall time count every number of the column.
+    """
+    domains = list(columns)
+    named = None if listed is None else {*listed, FLOOR}
+
+    def keys(found) -> list[str]:
+        return [k for k in found if named is None or k in named]
+    lines = ["## Where the numbers come from", "",
+             f"Per column: the commit of its numbers (the one most of its files name; {OTHER_COMMIT}: a number "
+             f"from another commit, or without one recorded), the wall time of the stages behind them (summed: "
+             f"pretraining, fine-tuning, evaluations, search; the files that recorded it), and the "
+             f"numbers a wall-clock limit shaped ({BY_TIME}, stopped by time: rerunning them on another machine "
+             f"gives other numbers; the others are a function of code, params and data).", "",
+             "| | " + " | ".join(_title(d) for d in domains) + " |", "|---|" + "---|" * len(domains)]
+
+    def row(name: str, cell) -> None:
+        lines.append(f"| {name} | " + " | ".join(cell(columns[d]) for d in domains) + " |")
+
+    row("commit", lambda c: _short(c.commit) + (" (dirty)" if c.dirty else ""))
+    row(f"{OTHER_COMMIT} from another commit",
+        lambda c: ", ".join(f"{label(k)} ({', '.join(_short(x) for x in c.others[k])})" for k in keys(c.others))
+        or "—")
+    row("stages' wall time", lambda c: (f"{_hours(c.wall_seconds)} ({c.timed_files} of {c.files} files)"
+                                        if c.timed_files else NOT_RECORDED))
+
+    def stop(c: Column) -> str:
+        parts = []
+        if keys(c.stopped_by_time):
+            parts.append(f"{BY_TIME} by time: " + ", ".join(label(k) for k in keys(c.stopped_by_time)))
+        if keys(c.stop_unknown):
+            parts.append("not recorded: " + ", ".join(label(k) for k in keys(c.stop_unknown)))
+        return "; ".join(parts) or "work (every run ended on its epochs, rounds or patience)"
+
+    row("stop", stop)
+    return "\n".join(lines) + "\n"
+
+
+def columns_json(columns: dict[str, Column]) -> dict[str, dict]:
+    """The columns for ``report.json``: commit, other commits, wall time, stops, and each number's commits."""
+    return {d: {"commit": c.commit, "dirty": c.dirty, "other_commits": c.others,
+                "wall_seconds": round(c.wall_seconds, 1), "wall_seconds_files": [c.timed_files, c.files],
+                "stopped_by_time": c.stopped_by_time, "stop_not_recorded": c.stop_unknown,
+                "numbers": {k: {"commits": dict(r.commits), "stopped_by_time": r.stopped_by_time}
+                            for k, r in c.records.items()}}
+            for d, c in columns.items()}
 
 
 # -- rendering ------------------------------------------------------------------------------------
@@ -164,10 +373,13 @@ def _paper(domain: str, per_round: bool = False) -> Mapping[str, float]:
 
 
 def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], per_round: dict[str, str],
-                   profile: str | None = None, floors: dict[str, float | None] | None = None) -> str:
+                   profile: str | None = None, floors: dict[str, float | None] | None = None,
+                   columns: dict[str, Column] | None = None) -> str:
     """Table 1 layout: a row per method, per domain our value and the paper's; then times and P_BEST.
 
     ``floors`` (domain -> the floor baseline's test value) adds the row of the domains' floors (no paper value).
+    ``columns`` (domain -> :class:`Column`) marks the numbers from another commit or stopped by time, with a
+    note under the table when any is marked (:func:`columns_markdown` is the section that says more).
     """
     domains = list(results)
     by = {d: {r.key: r for r in rs} for d, rs in results.items()}
@@ -184,7 +396,7 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
         for d in domains:
             _, k, digits = _column(d)
             r = by[d].get(key)
-            row += f" {_fmt(r.test * k if r and r.test is not None else None, digits)} |" \
+            row += f" {_fmt(r.test * k if r and r.test is not None else None, digits)}{marks(columns, d, key)} |" \
                    f" {_fmt(_paper(d).get(key), digits)} |"
         lines.append(row)
     if floors and any(v is not None for v in floors.values()):
@@ -192,9 +404,13 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
         for d in domains:
             _, k, digits = _column(d)
             v = floors.get(d)
-            row += f" {_fmt(v * k if v is not None else None, digits)} | — |"
+            row += f" {_fmt(v * k if v is not None else None, digits)}{marks(columns, d, FLOOR)} | — |"
         lines += [row, "", "The floor row is no method: the best program of a trivial family per test shape "
                   "(one primitive, or the tightest axis-aligned box), found without a network."]
+    shown = [*methods, FLOOR, *per_round.values()]
+    if any(marks(columns, d, k) for d in domains for k in shown):
+        lines += ["", f"{OTHER_COMMIT}: a number from another commit than its column's; {BY_TIME}: stopped by time, "
+                  f"a wall-clock limit shaped it (\"Where the numbers come from\", below)."]
     lines += ["", "## Fine-tuning runs", "",
               "| method | " + " | ".join(f"{_title(d)}: minutes, rounds (RL: epochs), stop"
                                         for d in domains) + " |",
@@ -206,7 +422,8 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
             if r is None or r.train_seconds is None:
                 cells.append("—")
             else:
-                cells.append(f"{r.train_seconds / 60:.1f} min, {r.rounds}, {r.stopped}")
+                stop = f"{BY_TIME} stopped by time" if r.stopped_by_time else r.stopped
+                cells.append(f"{r.train_seconds / 60:.1f} min, {r.rounds}, {stop}")
         lines.append(f"| {label(key)} | " + " | ".join(cells) + " |")
     if per_round:
         lines += ["", "## P_BEST: all-time vs per-round (supplement)", ""]
@@ -220,7 +437,8 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
                 ra, rb = by[d].get(a), by[d].get(b)
                 va = ra.test * k if ra and ra.test is not None else None
                 vb = rb.test * k if rb and rb.test is not None else None
-                lines.append(f"| {label(a)} | {_fmt(va, digits)} | {_fmt(vb, digits)} | "
+                lines.append(f"| {label(a)} | {_fmt(va, digits)}{marks(columns, d, a)} | "
+                             f"{_fmt(vb, digits)}{marks(columns, d, b)} | "
                              f"{_fmt(paper.get(a), digits)} | {_fmt(ref.get(a), digits)} |")
             lines.append("")
     return "\n".join(lines).rstrip("\n") + "\n"
@@ -304,8 +522,10 @@ def missing_note(missing: list[str]) -> list[str]:
     return [f"Not computed (no metrics.json): {', '.join(missing)}.", ""] if missing else []
 
 
-def beyond_markdown(rows: dict[str, dict[str, Timed | None]], keys: list[str]) -> str:
-    """The rows beyond the paper: per domain our value and seconds per shape (no paper number exists)."""
+def beyond_markdown(rows: dict[str, dict[str, Timed | None]], keys: list[str],
+                    columns: dict[str, Column] | None = None) -> str:
+    """The rows beyond the paper: per domain our value and seconds per shape (no paper number exists); marked as
+    :func:`table_markdown` marks its numbers."""
     domains = list(rows)
     lines = ["## Beyond the paper: search beside learning", "",
              "Not in the paper: search from scratch without a network, LEST+ST+WS trained on a P_BEST seeded and "
@@ -325,7 +545,8 @@ def beyond_markdown(rows: dict[str, dict[str, Timed | None]], keys: list[str]) -
             t = rows[d].get(key)
             if t is None:
                 missing.append(f"{d}/{key}")
-            row += f" {_fmt(t.test * k if t else None, digits)} | {_seconds(t.seconds_per_shape if t else None)} |"
+            row += f" {_fmt(t.test * k if t else None, digits)}{marks(columns, d, key) if t else ''} |" \
+                   f" {_seconds(t.seconds_per_shape if t else None)} |"
         lines.append(row)
     lines.append("")
     lines += missing_note(missing)

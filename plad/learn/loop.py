@@ -15,7 +15,11 @@ does. What they share lives here, once:
   spends its training epochs);
 * a wall-clock budget in seconds, summed over the units of all resumes; a
   loop runs at least one unit before the budget can stop it, so that every
-  loop ends with a best model even when an outer loop left it no time;
+  loop ends with a best model even when an outer loop left it no time. The
+  profiles fix the work (``max_units``, patience) and keep the budget as a
+  safety net only: a result is a function of code, params and data unless
+  the budget stopped the loop or something inside a unit (an inner loop, a
+  time-limited search), which the summary says (``stopped_by_time``);
 * persistence through a store: after each unit the caller's state and the
   loop state are written so that a killed run, started again, continues
   after the last finished unit (``store=None``: in memory only);
@@ -106,6 +110,9 @@ class Unit:
     value: float
     row: dict[str, Any] = field(default_factory=dict)
     patience: float = 1
+    #: a time limit cut the unit's work short (an inner loop's budget, a search's time limit): its history
+    #: row gets ``stopped_by_time: true``
+    stopped_by_time: bool = False
 
 
 @dataclass
@@ -152,10 +159,16 @@ class LoopResult:
     seconds: float
     history: list[dict[str, Any]]
 
+    @property
+    def stopped_by_time(self) -> bool:
+        """Whether a wall-clock limit shaped the result: the budget stopped the loop, or cut a unit's work."""
+        return self.stopped == "budget" or any(bool(r.get("stopped_by_time")) for r in self.history)
+
     def summary(self) -> dict[str, Any]:
         """The run summary every trainer reports (results/finetune/*.json, pretrain's summary.json)."""
         return {"unit_name": self.unit_name, "units": self.units, "best_unit": self.best_unit, "val": self.best,
-                "stopped": self.stopped, "train_seconds": round(self.seconds, 1)}
+                "stopped": self.stopped, "stopped_by_time": self.stopped_by_time,
+                "train_seconds": round(self.seconds, 1)}
 
 
 class Store(Protocol):
@@ -300,6 +313,8 @@ class Loop:
             else:
                 s.since_best += result.patience
             row = {"unit": unit, "val": result.value, **result.row, "unit_seconds": dt, "seconds": s.seconds}
+            if result.stopped_by_time:
+                row["stopped_by_time"] = True
             s.history.append(row)
             if self.store and dist.is_main():
                 self.store.commit(s.to_dict())   # the unit is finished once this is on disk

@@ -64,9 +64,12 @@ class MethodConfig:
     pbest_mode: str = "all-time"
     #: search-seeded and rewritten P_BEST (PLAD methods; null: the paper's P_BEST, from inference only)
     search: PBestSearchConfig | None = None
-    #: this method's own wall-clock budget, minutes, instead of the stage's ``max_minutes`` (null: the
-    #: stage's). For rows beyond the paper only: the paper-comparable methods share one budget
+    #: this method's own wall-clock safety net, minutes, instead of the stage's ``max_minutes`` (null: the
+    #: stage's)
     max_minutes: float | None = None
+    #: this method's rounds, at most ``plad.max_rounds`` (null: that); PLAD methods only (RL's epochs:
+    #: ``rl.max_epochs``). The work that fixes a result: the profiles set it per method and domain
+    max_rounds: int | None = None
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,12 @@ and before its training (:attr:`plad.learn.rounds.RoundHooks.after_infer`):
   ``rewrite_share`` of the P_BEST entries within ``rewrite_minutes``,
   entries not refined since they last changed first.
 
+The work of both is fixed by the shares and the search and refine
+configurations; the minutes are a safety net, shared equally by a step's
+chunks. A step whose chunk ran out of its share says so
+(``<step>_stopped_by_time`` in the round's history), and so does the run's
+summary.
+
 Found programs are offered to P_BEST like inferred ones: an entry changes
 only for a program at least as good (and the rewriters never return a
 worse one), so neither step makes an entry worse. Rewritten entries are
@@ -86,7 +92,7 @@ def write_chunk(path: Path, r: ChunkResult, width: int) -> None:
     buf = io.BytesIO()
     np.savez_compressed(buf, index=r.index, programs=_pad(r.programs, width), values=r.values, before=r.before,
                         executions=np.packbits(r.executions.reshape(len(r.index), -1), axis=1),
-                        seconds=np.asarray(r.seconds))
+                        seconds=np.asarray(r.seconds), stopped_by_time=np.asarray(r.stopped_by_time))
     atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
 
@@ -94,8 +100,10 @@ def read_chunk(path: Path, shape: tuple[int, ...]) -> ChunkResult:
     with np.load(path) as z:
         n = len(z["index"])
         executions = np.unpackbits(z["executions"], axis=1, count=int(np.prod(shape))).astype(bool)
+        # chunk files written before the flag existed: not known to be cut short
+        timed = bool(z["stopped_by_time"]) if "stopped_by_time" in z.files else False
         return ChunkResult(z["index"].copy(), _unpad(z["programs"]), z["values"].copy(),
-                           executions.reshape(n, *shape), z["before"].copy(), float(z["seconds"]))
+                           executions.reshape(n, *shape), z["before"].copy(), float(z["seconds"]), timed)
 
 
 @dataclass
@@ -105,11 +113,14 @@ class StepStats:
     gain: float          # mean gain of those shapes' entries, in the metric's better direction
     seconds: float       # wall-clock seconds of the step (this process, including resumed chunks' reading)
     chunks_resumed: int  # chunks read from disk instead of computed
+    #: a chunk's share of the step's minutes cut its work short (see plad.rewrite.driver.Result)
+    stopped_by_time: bool = False
 
     def row(self, prefix: str) -> dict[str, float]:
         return {f"{prefix}_shapes": float(self.shapes), f"{prefix}_improved": self.improved,
                 f"{prefix}_gain": self.gain, f"{prefix}_seconds": self.seconds,
-                f"{prefix}_chunks_resumed": float(self.chunks_resumed)}
+                f"{prefix}_chunks_resumed": float(self.chunks_resumed),
+                f"{prefix}_stopped_by_time": float(self.stopped_by_time)}
 
 
 class PBestSearch:
@@ -183,7 +194,7 @@ class PBestSearch:
         better = np.where(had, delta > 0, ~np.isnan(new))   # an empty entry filled counts as improved
         gain = float(delta[had].mean()) if had.any() else 0.0
         return StepStats(len(index), float(better.mean()) if len(index) else 0.0, gain,
-                         time.perf_counter() - start, resumed)
+                         time.perf_counter() - start, resumed, any(r.stopped_by_time for r in results))
 
     def _results(self, folder: Path, kind: str, chunks: list[Chunk], overrides: dict, minutes: float | None,
                  width: int) -> list:

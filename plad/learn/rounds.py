@@ -7,7 +7,7 @@ the validation metric (beam ``val_beam_epoch``) and the round's best
 weights restored; then validate with beam ``val_beam_round`` for model
 selection across rounds. Fine-tuning stops after ``round_patience`` epochs
 without a validation improvement, after ``max_rounds`` rounds, or when the
-training-time budget is spent.
+training-time budget (a safety net: the profiles fix the rounds) is spent.
 
 With wake-sleep in the mixture, each round also fine-tunes the generative
 model (:mod:`plad.learn.ws`) on P_BEST and samples |S*| unique programs from it;
@@ -51,7 +51,7 @@ import torch
 
 from plad.device import FP32, Precision
 from plad.domains.base import Domain
-from plad.fsutil import atomic_write
+from plad.fsutil import atomic_write, atomic_write_text
 from plad.layout import BEST, LAST, STATE
 from plad.learn import distributed as dist
 from plad.learn.job import Job
@@ -91,6 +91,9 @@ class RoundsConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     ws: WSConfig = field(default_factory=WSConfig)
 
+
+#: columns of a round's history that say a time limit cut a step of it short (wake-sleep generator, search)
+TIMED_COLUMNS = ("ws_stopped_by_time", "seed_stopped_by_time", "rewrite_stopped_by_time")
 
 #: (model, shapes) -> (values (N,), programs (list of N token lists), executions (N, *shape))
 Infer = Callable[[PLADNet, np.ndarray], tuple[np.ndarray, list, np.ndarray]]
@@ -239,9 +242,14 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                 stats["pbest_mean"] = float(np.nanmean(pbest.values))
             if dist.is_main():
                 pbest.save(out / "pbest_round.npz")
+                # what the resumed round must still report: whether a search step ran out of time
+                atomic_write_text(out / "pbest_round.json",
+                                  json.dumps({k: stats[k] for k in TIMED_COLUMNS if k in stats}) + "\n")
         else:
             pbest = PBest.load(out / "pbest_round.npz", metric, domain.canonical)
             stats = {"pbest_mean": float(np.nanmean(pbest.values)), "pbest_improved": math.nan}
+            if (out / "pbest_round.json").exists():
+                stats.update(json.loads((out / "pbest_round.json").read_text()))
         stats["pbest_filled"] = float(pbest.has.mean())
         sources = {"st": st_source(pbest, job.train, device), "lest": lest_source(pbest, device)}
         if "ws" in mixture.names:
@@ -261,8 +269,10 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
                      precision=job.precision)
         value = run(f"round {rnd}: validate", mean_metric, model, domain, job.val, cfg.val_beam_round,
                     cfg.infer_batch)
+        # a time limit inside the round (the training's or the generator's share of the budget, a search step's)
+        timed = result.stopped_by_time or any(stats.get(k) for k in TIMED_COLUMNS)
         # patience counts training epochs, so that it means the same whatever the epochs per round
-        return Unit(value, {**stats, "epochs": result.units}, patience=result.units)
+        return Unit(value, {**stats, "epochs": result.units}, patience=result.units, stopped_by_time=bool(timed))
 
     loop = Loop("round", metric, Limits(cfg.max_rounds, cfg.round_patience, cfg.min_delta, job.budget_seconds),
                 JsonStore(out / STATE, save=save, restore=restore))

@@ -175,7 +175,9 @@ def train_generator(gen: Generator, pbest: PBest, cfg: WSConfig, seed: int,
     loop = Loop("epoch", WS_LOSS, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, max_seconds))
     result = loop.run(epoch, keep_best=keep_best, restore_best=restore_best)
     gen.eval()
-    return {"ws_loss": result.best, "ws_epochs": result.units}
+    # 1.0: the round's remaining budget stopped the generator before its epochs were done (a number, as every
+    # column of the round's history, so that MLflow logs it)
+    return {"ws_loss": result.best, "ws_epochs": result.units, "ws_stopped_by_time": float(result.stopped_by_time)}
 
 
 def sample_dataset(gen: Generator, domain: Domain, n: int, cfg: WSConfig,

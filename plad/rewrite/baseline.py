@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 
-def _worker(job: tuple[str, np.ndarray, dict]) -> tuple[list[str], list[float], dict, float, float]:
+def _worker(job: tuple[str, np.ndarray, dict]) -> tuple[list[str], list[float], dict, float, float, bool]:
     import torch
 
     from plad.domains import get_domain
@@ -41,7 +41,7 @@ def _worker(job: tuple[str, np.ndarray, dict]) -> tuple[list[str], list[float], 
     cpu = time.process_time()
     result = search(domain, torch.from_numpy(targets), search_config(domain, **overrides))
     return ([domain.format(p) if p else "" for p in result.programs], result.values.tolist(),
-            result.stats.as_dict(), result.seconds, time.process_time() - cpu)
+            result.stats.as_dict(), result.seconds, time.process_time() - cpu, result.stopped_by_time)
 
 
 def run_baseline(domain_name: str, targets: np.ndarray, workers: int = 1, overrides: dict | None = None,
@@ -85,6 +85,8 @@ def run_baseline(domain_name: str, targets: np.ndarray, workers: int = 1, overri
         "cpu_seconds_per_shape": sum(o[4] for o in outputs) / max(n, 1),
         "mean_tokens": float(np.mean([len(domain.parse(p)) if p else 0 for p in programs])) if n else None,
         "empty_programs": sum(1 for p in programs if not p),
+        # a configured time limit cut some search short (none by default: the search's work is fixed)
+        "stopped_by_time": any(o[5] for o in outputs),
         "config": dataclasses.asdict(config), "stats": stats, "programs": programs, "values": values.tolist(),
     }
 

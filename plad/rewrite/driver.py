@@ -41,7 +41,8 @@ class RefineConfig:
     insert: bool = True
     #: PO sweeps over the inserted primitive's own block after an insertion
     tune_sweeps: int = 10
-    #: seconds for one batch of shapes (no new step starts after it); null: no limit
+    #: seconds for one batch of shapes (no new step starts after it); null: no limit. A safety net: the work is
+    #: fixed by the counts above, and a result the limit cut short says so (:attr:`Result.stopped_by_time`)
     time_limit: float | None = None
     #: shapes processed together
     batch: int = 256
@@ -70,6 +71,9 @@ class Result:
     values: torch.Tensor
     seconds: float
     stats: Stats
+    #: a batch's time limit passed before its work was done (steps may have been skipped): the programs depend
+    #: on the machine's speed, not only on the inputs and the configuration
+    stopped_by_time: bool = False
 
 
 def search_config(domain: Domain, **overrides) -> SearchConfig:
@@ -120,6 +124,13 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
     return programs, values
 
 
+def _past(deadline: float | None) -> bool:
+    """Whether a batch's work ended after its deadline. Every step checks the deadline before it starts (and PO
+    and insertion between candidates), so a batch that ends past it may have skipped steps; one that ends
+    before it did all its work. (A last step that merely overran counts too: the flag errs on the safe side.)"""
+    return deadline is not None and time.perf_counter() > deadline
+
+
 def _batches(n: int, size: int):
     for start in range(0, n, max(1, size)):
         yield slice(start, min(n, start + max(1, size)))
@@ -137,17 +148,19 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
     stats = Stats()
     out_programs: list[list[int]] = []
     out_values = []
+    timed = False
     for sl in _batches(len(programs), cfg.batch):
         scorer = Scorer(domain, targets[sl], screen=cfg.screen)
         batch = [list(p) for p in programs[sl]]
         values = scorer.values(batch)
         deadline = None if cfg.time_limit is None else time.perf_counter() + cfg.time_limit
         batch, values = _refine_batch(scorer, batch, values, cfg, deadline)
+        timed |= _past(deadline)
         out_values.append(_confirm(scorer, batch, values))
         out_programs += batch
         stats.add(scorer.stats)
     values = torch.cat(out_values) if out_values else torch.zeros(0, dtype=torch.float64)
-    return Result(out_programs, values, time.perf_counter() - start, stats)
+    return Result(out_programs, values, time.perf_counter() - start, stats, timed)
 
 
 def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
@@ -157,6 +170,7 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
     stats = Stats()
     out_programs: list[list[int]] = []
     out_values = []
+    timed = False
     for sl in _batches(len(targets), cfg.refine.batch):
         scorer = Scorer(domain, targets[sl], screen=cfg.refine.screen)
         n = sl.stop - sl.start
@@ -171,11 +185,12 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
                                                       only=growing, deadline=deadline)
             growing = torch.nonzero(inserted).flatten().tolist()
         programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
+        timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))
         out_programs += programs
         stats.add(scorer.stats)
     values = torch.cat(out_values) if out_values else torch.zeros(0, dtype=torch.float64)
-    return Result(out_programs, values, time.perf_counter() - start, stats)
+    return Result(out_programs, values, time.perf_counter() - start, stats, timed)
 
 
 __all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

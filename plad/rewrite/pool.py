@@ -17,7 +17,7 @@ import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -37,7 +37,8 @@ class Chunk:
 @dataclass
 class ChunkResult:
     """The chunk's shapes, the programs found (token lists), their values (n,) float64, their executions
-    (n, *shape) bool, the starting values (refine; the metric's worst for search) and the worker's seconds."""
+    (n, *shape) bool, the starting values (refine; the metric's worst for search), the worker's seconds and
+    whether the time limit cut the chunk's work short (:attr:`plad.rewrite.driver.Result.stopped_by_time`)."""
 
     index: np.ndarray
     programs: list[list[int]]
@@ -45,6 +46,7 @@ class ChunkResult:
     executions: np.ndarray
     before: np.ndarray
     seconds: float
+    stopped_by_time: bool = False
 
 
 def _run(job: tuple[str, str, dict[str, Any], float | None, Chunk]) -> ChunkResult:
@@ -76,7 +78,7 @@ def _run(job: tuple[str, str, dict[str, Any], float | None, Chunk]) -> ChunkResu
         result = refine(domain, chunk.programs, targets, cfg)
     executions = Scorer(domain, targets).outputs(result.programs).numpy()
     return ChunkResult(np.asarray(chunk.index), result.programs, result.values.numpy(), executions, before,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, result.stopped_by_time)
 
 
 def refine_config(overrides: dict[str, Any] | None):
@@ -139,19 +141,31 @@ def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[
         yield from pool.imap_unordered(_run, jobs)
 
 
+class Refined(NamedTuple):
+    """What :func:`refine_all` returns, in the input order."""
+
+    programs: list[list[int]]
+    values: np.ndarray         # (N,)
+    executions: np.ndarray     # (N, *shape) bool
+    #: a chunk's time limit cut its work short (the programs then depend on the machine's speed)
+    stopped_by_time: bool
+
+
 def refine_all(domain: str, programs: Sequence[Sequence[int]], targets: np.ndarray,
                overrides: dict[str, Any] | None = None, workers: int = 1,
-               chunk: int | None = None) -> tuple[list[list[int]], np.ndarray, np.ndarray]:
-    """Refine ``programs[i]`` towards ``targets[i]`` for all i: (programs, values (N,), executions (N, *shape)),
-    in the input order; no program comes back worse. ``chunk`` (default: the refine batch) shapes per job."""
+               chunk: int | None = None) -> Refined:
+    """Refine ``programs[i]`` towards ``targets[i]`` for all i (:class:`Refined`); no program comes back worse.
+    ``chunk`` (default: the refine batch) shapes per job."""
     size = chunk or refine_config(overrides).batch
     chunks = [Chunk(c, targets[c], [list(programs[i]) for i in c]) for c in split(len(programs), size)]
     out_programs: list[list[int]] = [[] for _ in range(len(programs))]
     values = np.zeros(len(programs))
     executions = np.zeros((len(programs), *targets.shape[1:]), dtype=bool)
+    timed = False
     for r in run_chunks(domain, "refine", chunks, overrides, workers):
         for k, i in enumerate(r.index):
             out_programs[int(i)] = r.programs[k]
         values[r.index] = r.values
         executions[r.index] = r.executions
-    return out_programs, values, executions
+        timed |= r.stopped_by_time
+    return Refined(out_programs, values, executions, timed)

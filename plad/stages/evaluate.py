@@ -20,6 +20,12 @@ processes) before scoring, into ``results/eval/<method>_refined/<domain>/``;
 ``results/eval/<method>_beam<k>/<domain>/`` (the amortization sweep).
 ``metrics.json`` gives the seconds per shape of the network and of the
 refinement.
+
+Every ``metrics.json`` records where its numbers come from (``provenance``:
+commit, params hash, threads, wall seconds, machine; :mod:`plad.provenance`)
+and whether a wall-clock limit shaped them (``stopped_by_time``): the
+training of the evaluated model (``training``, from the ``summary.json``
+beside its checkpoint) or the refinement's time limit.
 """
 from __future__ import annotations
 
@@ -40,6 +46,7 @@ from plad.fsutil import atomic_write_text
 from plad.layout import FLOOR, GRID, METRICS, SP, Layout, eval_key, programs_csv
 from plad.model.checkpoint import load_model, read_checkpoint
 from plad.model.decode import infer_batched
+from plad.provenance import stamp
 from plad.stages import StageContext, stage_main, write_programs_csv
 from plad.tracking import StageRun
 
@@ -92,8 +99,28 @@ def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]],
     write_programs_csv(path, domain.metric.name, index, values, [domain.format(p) for p in programs])
 
 
+def training_record(checkpoint) -> dict | None:
+    """How the evaluated model's training ended, from the run summary beside its checkpoint (None: none there):
+    its loop's unit, units, stop reason and whether a wall-clock limit shaped it."""
+    from plad.layout import SUMMARY
+
+    path = checkpoint.parent / SUMMARY
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(s, dict) or "stopped" not in s:
+        return None
+    # summaries written before the flag: the loop's budget stop was the only wall-clock limit they knew
+    timed = s.get("stopped_by_time", s.get("stopped") == "budget")
+    units = next((s[k] for k in ("units", "rounds", "epochs") if k in s), None)   # older summaries' names
+    return {"unit_name": s.get("unit_name"), "units": units, "stopped": s.get("stopped"),
+            "stopped_by_time": bool(timed), "commit": (s.get("provenance") or {}).get("commit")}
+
+
 def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:
     """The domain's floor baseline on the configured splits: ``results/eval/floor/<domain>/``."""
+    started = time.monotonic()
     out = layout.eval_dir(FLOOR, cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"domain": cfg.domain, "method": FLOOR, "floor": domain.floor_name or None,
@@ -105,12 +132,16 @@ def evaluate_floor_splits(cfg: EvaluateConfig, domain, layout: Layout) -> dict:
         report[split] = {"mean": round(float(values.mean()), 6), "n": int(len(values)),
                          "seconds": round(time.monotonic() - start, 1)}
         _write_programs(out / programs_csv(split), domain, values, programs, index)
+    report["stopped_by_time"] = False
+    report["provenance"] = stamp(cfg, started)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     return report
 
 
 def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     from plad.config import ConfigError
+
+    started = time.monotonic()
 
     if cfg.refine:   # refine_config and refine_workers are checked with the config (EvaluateConfig.__post_init__)
         from plad.rewrite.pool import refine_all
@@ -128,6 +159,8 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     report: dict = {"domain": cfg.domain, "method": cfg.method, "metric": domain.metric.name,
                     "higher_is_better": domain.metric.higher_is_better, "beam": beam, "refine": cfg.refine,
                     "checkpoint": str(checkpoint)}
+    training = training_record(checkpoint)
+    refine_timed = False
     for split in cfg.splits:
         targets, index = load_split(layout.prepared(cfg.domain), split, cfg.limit)
         start = time.monotonic()
@@ -138,9 +171,11 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
         row = {"mean": round(float(values.mean()), 6), "n": int(len(values))}
         if cfg.refine:
             row["network_mean"] = row["mean"]
-            programs, values, shapes = refine_all(domain.name, programs, targets, cfg.refine_config,
-                                                  cfg.refine_workers)
+            programs, values, shapes, timed = refine_all(domain.name, programs, targets, cfg.refine_config,
+                                                         cfg.refine_workers)
             row["mean"] = round(float(values.mean()), 6)
+            row["refine_stopped_by_time"] = timed
+            refine_timed |= timed
         seconds = time.monotonic() - start
         row.update(seconds=round(seconds, 1), shapes_per_second=round(len(values) / max(seconds, 1e-9), 2),
                    seconds_per_shape=seconds / n, network_seconds_per_shape=network / n,
@@ -151,6 +186,9 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
             # a fixed, evenly spaced set of the shapes (the same for every method)
             idx = evenly_spaced_index(len(targets), cfg.grid_shapes)
             save_png(pair_grid(targets[idx], shapes[idx]), out / GRID)
+    report["training"] = training
+    report["stopped_by_time"] = bool(refine_timed or (training or {}).get("stopped_by_time"))
+    report["provenance"] = stamp(cfg, started)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     if cfg.method == SP and not cfg.refine and cfg.sweep_beam is None:  # the floor is evaluate@<d>'s output
         report[FLOOR] = evaluate_floor_splits(cfg, domain, layout)

@@ -2,9 +2,12 @@
 
 ``--set key=<name>`` picks an entry of ``finetune.methods``: a PLAD mixture
 (``st``, ``lest``, ``ws``, ``lest+st``, ``lest+st+ws``, with optional weights)
-or ``rl`` (the REINFORCE baseline), and the P_BEST mode. Every method gets the
-same wall-clock budget (``max_minutes``) and the same model selection on the
-validation shapes. Starts from the pretrained model and the prepared shapes
+or ``rl`` (the REINFORCE baseline), and the P_BEST mode. The work is fixed:
+the method's ``max_rounds`` (at most ``plad.max_rounds``, the default; RL:
+``rl.max_epochs``) and the epochs and patience of each round; ``max_minutes``
+is a wall-clock safety net, and a run it stopped (or a time limit inside a
+round) is marked ``stopped_by_time`` in the summary. Every method has the
+same model selection on the validation shapes. Starts from the pretrained model and the prepared shapes
 and writes to ``runs/finetune/<domain>/<key>/`` (:mod:`plad.layout`):
 ``best.pt`` (the selected model), ``state.json`` (per-round history with
 wall-clock seconds), ``summary.json`` (also copied to
@@ -20,7 +23,9 @@ on N processes with ``torchrun --nproc-per-node N -m plad.stages.finetune ...``
 from __future__ import annotations
 
 import json
+import random
 import sys
+import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -33,6 +38,7 @@ from plad.learn import distributed as dist
 from plad.learn.methods import MethodConfig
 from plad.learn.rl import RLConfig
 from plad.learn.rounds import RoundHooks, RoundsConfig
+from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 
 
@@ -50,7 +56,7 @@ class FinetuneStageConfig:
     #: use only the first N training / validation shapes (None: all)
     train_limit: int | None = None
     val_limit: int | None = None
-    #: wall-clock budget of every method, in minutes (None: none); the run's only budget knob
+    #: wall-clock safety net of every method, in minutes (None: none): the rounds and epochs fix the work
     max_minutes: float | None = None
     methods: dict[str, MethodConfig] = field(default_factory=dict)
     #: the PLAD rounds (every PLAD method); the P_BEST mode is each method's
@@ -80,6 +86,10 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
             raise ConfigError(f"finetune.methods.{cfg.key}.method: {err}") from None
     if m.pbest_mode not in MODES:
         raise ConfigError(f"finetune.methods.{cfg.key}.pbest_mode {m.pbest_mode!r}: one of {', '.join(MODES)}")
+    if m.max_rounds is not None and m.method == "rl":
+        raise ConfigError(f"finetune.methods.{cfg.key}.max_rounds: RL has no rounds; its epochs are rl.max_epochs")
+    if m.max_rounds is not None and m.max_rounds < 1:
+        raise ConfigError(f"finetune.methods.{cfg.key}.max_rounds = {m.max_rounds}: expected at least 1")
     if m.search is not None:
         from plad.domains import get_domain
         from plad.learn.pbest_search import check
@@ -88,6 +98,14 @@ def method_of(cfg: FinetuneStageConfig) -> MethodConfig:
             raise ConfigError(f"finetune.methods.{cfg.key}.search: RL has no P_BEST to search for")
         check(m.search, get_domain(cfg.domain), f"finetune.methods.{cfg.key}.search")
     return m
+
+
+def method_params(cfg: FinetuneStageConfig) -> dict:
+    """The run's params: the section with only this run's entry of ``methods`` (what its numbers depend on;
+    MLflow's params and the summary's ``params_hash``)."""
+    params = asdict(cfg)
+    params["methods"] = {cfg.key: params["methods"][cfg.key]} if cfg.key in params["methods"] else {}
+    return params
 
 
 def load_shapes(cfg: FinetuneStageConfig, layout: Layout = Layout()) -> tuple[np.ndarray, np.ndarray]:
@@ -106,14 +124,15 @@ ORIGIN = "origin.json"
 
 def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> dict:
     """What a fine-tuning run starts from and would redo differently: the pretrained model's and the real
-    shapes' sha256, the method (without its budget: a longer budget extends a run) and the shape limits.
+    shapes' sha256, the method (without its budget and rounds: more of either extends a run) and the shape
+    limits.
 
     The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
     the pretrained model changes; this is what tells a resumable run from a stale one.
     """
     from plad.data.files import _sha256_file
 
-    method = {k: v for k, v in asdict(spec).items() if k != "max_minutes"}
+    method = {k: v for k, v in asdict(spec).items() if k not in ("max_minutes", "max_rounds")}
     return {"model_sha256": _sha256_file(layout.model(cfg.domain)),
             "data_sha256": _sha256_file(layout.prepared(cfg.domain)),
             "method": method, "seed": cfg.seed, "train_limit": cfg.train_limit, "val_limit": cfg.val_limit,
@@ -150,6 +169,7 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     from plad.learn.rounds import run_rounds
     from plad.model.checkpoint import load_model
 
+    started = time.monotonic()
     spec = method_of(cfg)
     hooks = hooks or RoundHooks()
     if cfg.threads:
@@ -160,7 +180,14 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
     domain = get_domain(name)
     train, val = load_shapes(cfg, layout)
     torch.manual_seed(cfg.seed)
+    # Python's and NumPy's global generators: no training step draws from them, but every last.pt saves
+    # their state, which must not differ between two runs of the stage
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
     minutes = spec.max_minutes if spec.max_minutes is not None else cfg.max_minutes
+    # the method's rounds, capped by plad.max_rounds (a profile caps every method with one key)
+    rounds = cfg.plad if spec.max_rounds is None else replace(cfg.plad, max_rounds=min(spec.max_rounds,
+                                                                                       cfg.plad.max_rounds))
     out = layout.finetune_dir(cfg.domain, str(cfg.key))
     if dist.is_main():   # (again, after tracked_finetune: hashing two small files is cheap)
         prepare_run_dir(out, run_origin(cfg, spec, layout))
@@ -174,10 +201,12 @@ def finetune_stage(cfg: FinetuneStageConfig, layout: Layout = Layout(), hooks: R
             from plad.learn.pbest_search import PBestSearch
 
             hooks = replace(hooks, after_infer=PBestSearch(domain, spec.search, job.out_dir, cfg.seed).after_infer)
-        summary = run_rounds(job, spec, cfg.plad, hooks)
+        summary = run_rounds(job, spec, rounds, hooks)
+    work = {"max_epochs": cfg.rl.max_epochs} if spec.method == "rl" else {"max_rounds": rounds.max_rounds}
     summary = {"key": cfg.key, "domain": cfg.domain, "pbest_mode": spec.pbest_mode,
-               "max_minutes": minutes, **summary,
-               "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val))}
+               "max_minutes": minutes, **work, **summary,
+               "metric": domain.metric.name, "train_shapes": int(len(train)), "val_shapes": int(len(val)),
+               "provenance": stamp(method_params(cfg), started)}
     if dist.is_main():
         text = json.dumps(summary, indent=2) + "\n"
         atomic_write_text(job.out_dir / SUMMARY, text)
@@ -198,9 +227,7 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
     out = ctx.layout.finetune_dir(cfg.domain, str(cfg.key))
     # before the MLflow run: a stale run folder's mlflow_run.json must not be resumed either
     prepare_run_dir(out, run_origin(cfg, method_of(cfg), ctx.layout))
-    params = asdict(cfg)
-    params["methods"] = {cfg.key: params["methods"][cfg.key]}   # this run's method only
-    with StageRun("finetune", cfg.domain, params, out, method=cfg.key, params_path=ctx.params) as run:
+    with StageRun("finetune", cfg.domain, method_params(cfg), out, method=cfg.key, params_path=ctx.params) as run:
         epochs: list[tuple[int, dict]] = []
 
         def on_epoch(rnd: int, epoch: int, metrics: dict) -> None:
@@ -222,7 +249,7 @@ def tracked_finetune(cfg: FinetuneStageConfig, ctx: StageContext = StageContext(
         start = read_state(out / STATE).history[0]   # the pretrained model's validation metric, at 0 s
         run.log_metrics({"val_at_seconds": start["val"]}, step=0)
         run.log_metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
-        run.set_tags({"plad.stopped": summary["stopped"]})
+        run.set_tags({"plad.stopped": summary["stopped"], "plad.stopped_by_time": summary["stopped_by_time"]})
         from plad.domains import get_domain
 
         metric = get_domain(cfg.domain).metric

@@ -2,19 +2,27 @@
 
 The algorithm is :func:`plad.learn.pretrain.pretrain` (see there: outputs in ``runs/pretrain/<domain>/``,
 resumable, per-epoch diagnostics). Data-parallel on N processes with ``torchrun --nproc-per-node N -m
-plad.stages.pretrain ...`` (:mod:`plad.learn.distributed`).
+plad.stages.pretrain ...`` (:mod:`plad.learn.distributed`). The stage adds to ``summary.json`` where its
+numbers come from (``provenance``: commit, params hash, threads, wall seconds, machine; :mod:`plad.provenance`).
 """
 from __future__ import annotations
 
+import json
+import random
 import sys
+import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from plad.config import ConfigError
-from plad.layout import BEST, HISTORY, PROVENANCE, SUMMARY
+from plad.fsutil import atomic_write_text
+from plad.layout import BEST, HISTORY, PROVENANCE, SUMMARY, Layout
 from plad.learn import distributed as dist
 from plad.learn.pretrain import PretrainConfig, pretrain
 from plad.learn.synthetic import load_programs
+from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 
 
@@ -33,17 +41,31 @@ def resolve_init(cfg: PretrainConfig, layout) -> Path | None:
     return Path(cfg.init) if Path(cfg.init).is_absolute() else layout.root / cfg.init
 
 
+def with_provenance(cfg: PretrainConfig, summary: dict, started: float, layout: Layout) -> dict:
+    """``summary`` with its ``provenance`` block, written again to ``summary.json`` (rank 0)."""
+    summary = {**summary, "provenance": stamp(cfg, started)}
+    if dist.is_main():
+        atomic_write_text(layout.pretrain_dir(cfg.domain) / SUMMARY, json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
 def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) -> dict:
     """:func:`pretrain` as an MLflow run: per-epoch metrics, outputs and the model."""
     from plad.tracking import StageRun
 
+    started = time.monotonic()
     load_programs(ctx.layout.synthetic(cfg.domain))  # fail before any MLflow run starts
+    # Python's and NumPy's global generators: no training step draws from them, but last.pt saves their
+    # state, which must not differ between two runs of the stage
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
     init = resolve_init(cfg, ctx.layout)
     if not dist.is_main():   # one MLflow run per training, rank 0's
         return pretrain(cfg, ctx.layout, init_path=init)
     out = ctx.layout.pretrain_dir(cfg.domain)
     with StageRun("pretrain", cfg.domain, asdict(cfg), out, params_path=ctx.params) as run:
         summary = pretrain(cfg, ctx.layout, on_epoch=lambda e, m: run.log_metrics(m, step=e), init_path=init)
+        summary = with_provenance(cfg, summary, started, ctx.layout)
         run.log_metrics({f"final_{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
         run.log_metrics({f"total_{k}": float(v) for k, v in summary.get("totals", {}).items()
                          if isinstance(v, (int, float))})

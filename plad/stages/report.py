@@ -27,11 +27,19 @@ artifacts; and every row of the tables gets its numbers on its row run
 (``report.json``'s ``rows``: test and validation metric, seconds per shape,
 training seconds, stop reason), so that MLflow's top level holds the same
 numbers as ``table.md`` even where DVC skipped a stage whose output was cached.
+
+Where each column's numbers come from (from the files' ``provenance``
+blocks, whatever the source: :func:`plad.eval.report.column`): the last
+section of ``table.md`` gives each column's commit, the numbers from another commit,
+the stages' wall time and the numbers a wall-clock limit shaped (stopped by
+time), and the tables mark those numbers; ``report.json`` holds the same
+under ``columns``, and its own ``provenance``.
 """
 from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import asdict, dataclass, field, replace
 
 from plad.config import ConfigError
@@ -44,6 +52,9 @@ from plad.eval.report import (
     amortization_markdown,
     amortization_png,
     beyond_markdown,
+    column,
+    columns_json,
+    columns_markdown,
     convergence_png,
     floor_from_files,
     floor_from_mlflow,
@@ -64,6 +75,7 @@ from plad.layout import (
     TABLE,
     Layout,
 )
+from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags, tracking_uri
 from plad.tracking.rows import PIPELINE, results_view_path
@@ -189,6 +201,7 @@ def result_rows(results: list[MethodResult], floor: float | None, timed: dict[st
 
 
 def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
+    started = time.monotonic()
     results = gather_complete(cfg, layout)
     out = layout.results_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -196,12 +209,15 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         floors = {d: floor_from_mlflow(d) for d in cfg.domains}
     else:
         floors = {d: floor_from_files(d, layout) for d in cfg.domains}
-    table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile, floors)
+    keys = [k for k, _ in amortization_keys(cfg.amortization.method, cfg.beams)]
+    shown = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values(), *cfg.beyond, *keys]))
+    columns = {d: column(d, shown, layout) for d in cfg.domains}
+    table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile, floors, columns)
     beyond = {d: timed_from_files(d, cfg.beyond, layout) for d in cfg.domains}
     if cfg.beyond:
-        table += "\n" + beyond_markdown(beyond, cfg.beyond)
+        table += "\n" + beyond_markdown(beyond, cfg.beyond, columns)
+    table += "\n" + columns_markdown(columns, [*cfg.methods, *cfg.per_round.values(), *cfg.beyond])
     atomic_write_text(out / TABLE, table)
-    keys = [k for k, _ in amortization_keys(cfg.amortization.method, cfg.beams)]
     points = {d: timed_from_files(d, keys, layout) for d in cfg.domains}
     atomic_write_text(out / AMORTIZATION_TABLE,
                       amortization_markdown(points, cfg.amortization.method, cfg.beams, cfg.profile))
@@ -209,16 +225,19 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
     convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
+    where = columns_json(columns)
     for d, rs in results.items():
         timed = timed_from_files(d, list(dict.fromkeys([r.key for r in rs] + cfg.beyond + keys)), layout)
         entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs},
-                 "floor": floors[d], "rows": result_rows(rs, floors[d], timed, _pretrain_summary(d, layout))}
+                 "stopped_by_time": {r.key: r.stopped_by_time for r in rs}, "floor": floors[d],
+                 "column": where[d], "rows": result_rows(rs, floors[d], timed, _pretrain_summary(d, layout))}
         best = champion(cfg, d, rs)
         if best is not None:
             entry["champion"] = {"method": best[0], "val": best[1]}
         entry["beyond"] = {k: (vars(t) if t else None) for k, t in beyond[d].items()}
         entry["amortization"] = {k: (vars(t) if t else None) for k, t in points[d].items()}
         summary["domains"][d] = entry
+    summary["provenance"] = stamp(cfg, started)
     atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -4,7 +4,8 @@ Runs :func:`plad.rewrite.baseline.run_baseline` (the domain's default
 search configuration with ``search`` overrides, ``workers`` processes of one
 thread each) on the prepared shapes of every configured split and writes to
 ``results/eval/search/<domain>/`` (:mod:`plad.layout`): ``metrics.json``
-(mean metric per split, seconds per shape: wall, per process and CPU) and
+(mean metric per split, seconds per shape: wall, per process and CPU; where
+the numbers come from, ``provenance``, and ``stopped_by_time``) and
 ``<split>_programs.csv`` (index, metric value, program text per shape), the
 same files as an evaluation of a network.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import asdict, dataclass, field
 
 from plad.layout import METRICS, SEARCH, Layout, programs_csv
@@ -35,9 +37,11 @@ def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
     from plad.data.files import load_split
     from plad.domains import get_domain
     from plad.fsutil import atomic_write_text
+    from plad.provenance import stamp
     from plad.rewrite import search_config
     from plad.rewrite.baseline import run_baseline
 
+    started = time.monotonic()
     domain = get_domain(cfg.domain)
     if domain.rewrite is None:
         raise ConfigError(f"search_only.{cfg.domain}: the {cfg.domain} domain has no search support")
@@ -59,9 +63,12 @@ def search_only(cfg: SearchOnlyConfig, layout: Layout = Layout()) -> dict:
                          "seconds_per_shape": s["seconds_per_shape"],
                          "process_seconds_per_shape": s["process_seconds_per_shape"],
                          "cpu_seconds_per_shape": s["cpu_seconds_per_shape"], "mean_tokens": s["mean_tokens"],
-                         "empty_programs": s["empty_programs"], "stats": s["stats"]}
+                         "empty_programs": s["empty_programs"], "stats": s["stats"],
+                         "stopped_by_time": s["stopped_by_time"]}
         write_programs_csv(out / programs_csv(split), domain.metric.name, index, values, programs)
         report["config"] = s["config"]
+    report["stopped_by_time"] = any(report[split]["stopped_by_time"] for split in cfg.splits)
+    report["provenance"] = stamp(cfg, started)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
     return report
 

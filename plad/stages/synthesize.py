@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +48,9 @@ def from_array(array: np.ndarray) -> list[list[int]]:
 def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10_000) -> dict:
     from plad.config import ConfigError
     from plad.domains import get_domain
+    from plad.provenance import stamp
 
+    started = time.monotonic()
     domain = get_domain(cfg.domain)
     samplers = domain.samplers()
     if cfg.sampler not in samplers:
@@ -74,6 +77,7 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
     if "train_complexity" in arrays and len(lengths):
         values, counts = np.unique(arrays["train_complexity"], return_counts=True)
         summary["train_complexity"] = {int(v): int(c) for v, c in zip(values, counts)}
+    summary["provenance"] = stamp(cfg, started)
     atomic_write_text(layout.synthetic_summary(cfg.domain), json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -320,11 +320,13 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
                               domain)
         splits = p["evaluate"][domain]["splits"]
         model = layout.model(domain, method) if method == SP else layout.finetune_dir(domain, method)
+        # SP's metrics record how its pretraining ended (a fine-tuned model's summary is in its run folder)
+        models = [model, layout.pretrain_dir(domain) / SUMMARY] if method == SP else [model]
         outs = [*(out / programs_csv(s) for s in splits), out / GRID, out / METRICS]
         if method == SP:   # the floor baseline is evaluated with SP
             floor = layout.eval_dir(FLOOR, domain)
             outs += [*(floor / programs_csv(s) for s in splits), floor / METRICS]
-        return rel([model, layout.prepared(domain)]), rel(outs)
+        return rel([*models, layout.prepared(domain)]), rel(outs)
     if stage.group == "finetune":
         return rel([layout.model(domain), layout.prepared(domain)]), \
             rel([layout.finetune_dir(domain, method), layout.finetune_summary(domain, method)])
@@ -337,6 +339,9 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         ins += [layout.finetune_dir(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.finetune_summary(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.model(d) for d in p["domains"]]   # the champion may be the pretrained model
+        # where each column's numbers come from: SP's pretraining and the floor
+        ins += [layout.pretrain_dir(d) / SUMMARY for d in p["domains"]]
+        ins += [layout.eval_dir(FLOOR, d) / METRICS for d in p["domains"]]
         out = layout.results_dir
         return rel(ins), rel([out / TABLE, out / CONVERGENCE, out / REPORT, out / AMORTIZATION_TABLE,
                               out / AMORTIZATION_PLOT])

@@ -5,10 +5,12 @@ runs there with ``dvc exp run --temp -S profile=smoke`` (the README's command), 
 committed file (the ``cpu`` results, ``dvc.lock``, ``params.yaml``) as it was. The experiment is then
 applied to the copy's workspace so that the tests below can read its outputs.
 """
+import csv
 import json
 import os
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -155,6 +157,97 @@ def test_smoke_repro_top_level_is_the_results_table(smoke_run):
     assert pipeline["tags.mlflow.runName"] == "pipeline · smoke"
     artifacts = {a.path for a in client.list_artifacts(pipeline["run_id"])}
     assert {"table.md", "convergence.png", "amortization.png"} <= artifacts
+
+
+#: the slice of the pipeline run again (dvc.yaml's commands): 2D CSG from its synthetic programs to two
+#: fine-tunings, the search-seeded one (search workers, rewriting, wake-sleep) and RL
+SLICE = [["synthesize", "--section", "synthesize.csg2d"], ["pretrain", "--section", "pretrain.csg2d"],
+         ["evaluate", "--section", "evaluate.csg2d"],
+         ["finetune", "--section", "finetune.csg2d", "--set", "key=lest_st_ws_search"],
+         ["finetune", "--section", "finetune.csg2d", "--set", "key=rl"]]
+#: what the slice writes
+SLICE_OUTPUTS = ["data/synthetic/csg2d.npz", "data/synthetic/csg2d.json", "runs/pretrain/csg2d",
+                 "results/eval/sp/csg2d", "results/eval/floor/csg2d", "runs/finetune/csg2d/lest_st_ws_search",
+                 "runs/finetune/csg2d/rl", "results/finetune/csg2d/lest_st_ws_search.json",
+                 "results/finetune/csg2d/rl.json"]
+
+
+def same_content(a, b, where: str) -> None:
+    """``a`` and ``b`` (a file's decoded content) hold the same values, wall-clock measurements aside: dicts
+    without :func:`plad.provenance.is_timing` keys, tensors and arrays exactly equal."""
+    import torch
+
+    from plad.provenance import is_timing
+
+    if isinstance(a, dict):
+        assert isinstance(b, dict), where
+        keys = [k for k in a if not is_timing(str(k))]
+        assert keys == [k for k in b if not is_timing(str(k))], where
+        for k in keys:
+            same_content(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            same_content(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b), where
+    else:
+        assert a == b or (a != a and b != b), f"{where}: {a!r} != {b!r}"   # NaN == NaN here
+
+
+def same_file(a, b, name: str) -> None:
+    """Two runs' versions of one output are the same: byte for byte, except the wall-clock measurements a
+    file holds (metrics and state JSON, the loop state in ``last.pt``, a search chunk's seconds, the
+    pretraining history's epoch seconds)."""
+    import torch
+
+    if a.suffix == ".json":
+        same_content(json.loads(a.read_text()), json.loads(b.read_text()), name)
+        pa, pb = (json.loads(f.read_text()).get("provenance") for f in (a, b))
+        if pa is not None:   # the same settings, by the hash of the stage's resolved params
+            assert pb is not None and pa["params_hash"] == pb["params_hash"], name
+    elif a.name == "last.pt":
+        same_content(torch.load(a, weights_only=True), torch.load(b, weights_only=True), name)
+    elif a.suffix == ".npz" and a.parent.parent.name == "search":
+        with np.load(a) as za, np.load(b) as zb:
+            same_content({k: za[k] for k in za.files}, {k: zb[k] for k in zb.files}, name)
+    elif a.name == "history.csv":
+        rows = [[{k: v for k, v in r.items() if k != "epoch_seconds"} for r in csv.DictReader(f.open())]
+                for f in (a, b)]
+        assert rows[0] == rows[1], name
+    else:
+        assert a.read_bytes() == b.read_bytes(), name
+
+
+def test_a_stage_run_again_gives_the_same_numbers_and_checkpoints(smoke_run, tmp_path):
+    """Budgets in work, one torch thread: the slice's stages run again (one process each, a root of their own)
+    give every metrics file, checkpoint and state file of the pipeline's run, wall-clock measurements aside."""
+    work, env, *_ = smoke_run
+    again = tmp_path / "again"
+    for name in ["params.yaml", "profiles", "data/prepared/csg2d.npz", "data/prepared/csg2d.json"]:
+        (again / name).parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if (work / name).is_dir() else shutil.copy2)(work / name, again / name)
+    # the copy's code; an MLflow store of its own (the tests above count the pipeline's runs)
+    env = {**env, "PYTHONPATH": str(work), "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    for stage, *args in SLICE:
+        run([sys.executable, "-m", f"plad.stages.{stage}", "--params", "params.yaml", *args], again, env)
+    compared = 0
+    for output in SLICE_OUTPUTS:
+        first = work / output
+        files = sorted(p for p in first.rglob("*") if p.is_file()) if first.is_dir() else [first]
+        assert files, output
+        for path in files:
+            if path.name in ("mlflow_run.json", ".gitignore"):   # the run's id in its MLflow store; DVC's file
+                continue
+            rel = path.relative_to(work)
+            assert (again / rel).is_file(), f"{rel}: not written again"
+            same_file(path, again / rel, str(rel))
+            compared += 1
+    assert compared >= 30   # every checkpoint, state and metrics file of the slice (P_BEST, search chunks, ...)
+    summary = json.loads((again / "results" / "finetune" / "csg2d" / "lest_st_ws_search.json").read_text())
+    assert summary["stopped"] == "max_rounds" and summary["stopped_by_time"] is False
 
 
 def test_smoke_repro_is_up_to_date_afterwards(smoke_run):

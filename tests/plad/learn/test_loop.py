@@ -79,7 +79,8 @@ def test_history_has_the_fixed_schema_and_restore_best_runs_last():
     assert result.history[1]["x"] == 10
     assert events == [("keep", 0), ("keep", 1), ("unit", 1), ("keep", 2), ("unit", 2), ("unit", 3), ("restore",)]
     assert result.summary() == {"unit_name": "round", "units": 3, "best_unit": 2, "val": 2.0,
-                                "stopped": "max_rounds", "train_seconds": round(result.seconds, 1)}
+                                "stopped": "max_rounds", "stopped_by_time": False,
+                                "train_seconds": round(result.seconds, 1)}
 
 
 def test_budget_in_seconds_across_resumes(tmp_path, clock):
@@ -103,6 +104,25 @@ def test_budget_in_seconds_across_resumes(tmp_path, clock):
         return Unit(1.0)
     Loop("round", LOSS, Limits(max_units=2, budget_seconds=10.0)).run(inner)
     assert seen == [8.5, 6.0]
+
+
+def test_a_result_says_whether_a_wall_clock_limit_shaped_it(clock):
+    # the work (max_units) ends the loop before the budget: not stopped by time, whatever the clock says
+    step, _ = scripted([3.0, 2.0], clock, seconds=4.0)
+    result = Loop("epoch", LOSS, Limits(max_units=2, budget_seconds=8.0)).run(step)
+    assert result.stopped == "max_epochs" and result.seconds == 8.0
+    assert result.summary()["stopped_by_time"] is False and "stopped_by_time" not in result.history[-1]
+    # the budget (the safety net) ends it: stopped by time
+    step, _ = scripted([3.0, 2.0, 1.0], clock, seconds=4.0)
+    result = Loop("epoch", LOSS, Limits(max_units=3, budget_seconds=8.0)).run(step)
+    assert result.stopped == "budget" and result.summary()["stopped_by_time"] is True
+    # a unit whose own work a time limit cut short (an inner loop, a search step): its row and the result say so
+
+    def cut(unit, remaining):
+        return Unit(1.0 / unit, stopped_by_time=unit == 2)
+    result = Loop("round", LOSS, Limits(max_units=3)).run(cut)
+    assert result.stopped == "max_rounds" and result.summary()["stopped_by_time"] is True
+    assert [r.get("stopped_by_time", False) for r in result.history] == [False, True, False]
 
 
 def test_a_loop_runs_one_unit_even_without_budget_left(clock):

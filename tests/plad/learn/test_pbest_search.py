@@ -161,6 +161,9 @@ def test_rounds_with_search_seed_then_rewrite_and_log_it_in_the_history(tmp_path
             assert history[1]["seed_shapes"] == 16 and "seed_shapes" not in history[2]
             assert history[1]["rewrite_shapes"] == history[2]["rewrite_shapes"] == 8
             assert all(history[r]["rewrite_seconds"] > 0 for r in (1, 2))
+            # no time limit: no step was cut short, and the run's work is what the config fixed
+            assert all(history[r]["seed_stopped_by_time"] == 0.0 for r in (1,))
+            assert not any(history[r].get("stopped_by_time") for r in (1, 2))
             pbest = PBest.load(out / "pbest.npz", domain.metric)
             assert pbest.refined.sum() >= 8   # the flags are saved with P_BEST
     assert means["search"] < means["plain"]   # Chamfer: the seeded P_BEST is better than inference alone
@@ -203,7 +206,7 @@ def test_the_configured_time_limit_holds_in_the_pool():
     domain = get_domain("csg2d")
     targets = _targets(domain, 4)
     programs = domain.sample(4, np.random.default_rng(9))
-    same, _, _ = refine_all("csg2d", programs, targets, {"time_limit": 1e-9})   # over at once: no step starts
-    assert same == [list(p) for p in programs]
-    better, values, _ = refine_all("csg2d", programs, targets, {"rounds": 1})
-    assert better != same
+    same, _, _, timed = refine_all("csg2d", programs, targets, {"time_limit": 1e-9})   # over at once: no step
+    assert same == [list(p) for p in programs] and timed   # ... and the result says a time limit shaped it
+    better, values, _, timed = refine_all("csg2d", programs, targets, {"rounds": 1})
+    assert better != same and not timed
