@@ -165,6 +165,14 @@ class RewriteSpace(abc.ABC):
         (so that :func:`plad.rewrite.po.optimize` with ``last_only`` tunes them).
         """
 
+    def extensions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
+                   targets: torch.Tensor) -> Candidates:
+        """The children of partial programs in beam search (:mod:`plad.rewrite.beam`): programs one
+        primitive (or part) longer, arguments as :meth:`insertions`. A beam explores where a greedy
+        insertion would not, so a domain may offer more here (e.g. every operator, not only those that
+        pay greedily). Default: :meth:`insertions`."""
+        return self.insertions(programs, outputs, targets)
+
     # ---- CP ---------------------------------------------------------------------------------
     def nodes(self, program: Sequence[int]) -> list[Node]:
         """The expression tree of a valid program, children before parents; [] if none."""
