@@ -139,6 +139,12 @@ class RewriteSpace(abc.ABC):
     screen_keep: int | None = None
     #: Per-domain defaults of :class:`plad.rewrite.driver.SearchConfig` (field -> value).
     search_defaults: ClassVar[dict[str, Any]] = {}
+    #: What each effort level of a search (:data:`plad.rewrite.driver.EFFORTS`) changes in
+    #: :attr:`search_defaults` (level -> field -> value), each level at least as much work as the one before.
+    #: This default, for a domain that has not measured its own: fast skips the refinement after the greedy
+    #: insertions, default is :attr:`search_defaults` itself, best refines for up to 3 rounds.
+    search_efforts: ClassVar[dict[str, dict[str, Any]]] = {
+        "fast": {"refine": {"rounds": 0}}, "default": {}, "best": {"refine": {"rounds": 3}}}
 
     def __init__(self, domain: Domain):
         self.domain = domain

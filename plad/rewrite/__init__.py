@@ -9,6 +9,6 @@ primitive where the residual says it helps). :mod:`.driver` composes them:
 takes part by returning a :class:`~plad.domains.space.RewriteSpace` from its
 ``rewrite`` member.
 """
-from plad.rewrite.driver import RefineConfig, Result, SearchConfig, refine, search, search_config
+from plad.rewrite.driver import EFFORTS, RefineConfig, Result, SearchConfig, refine, search, search_config
 
-__all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]
+__all__ = ["EFFORTS", "RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

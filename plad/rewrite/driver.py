@@ -8,6 +8,11 @@ either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
 (:mod:`.beam`), then refines. No step ever makes a program worse, and every
 returned value is re-executed and re-scored at the end.
+
+One knob sets the effort of a search: ``effort`` (:data:`EFFORTS`), whose
+levels each domain maps to settings (its
+:attr:`~plad.domains.space.RewriteSpace.search_efforts`); settings given
+beside it override the level's.
 """
 from __future__ import annotations
 
@@ -52,10 +57,17 @@ class RefineConfig:
     screen: bool = True
 
 
+#: the effort levels of a search, least work first (each domain maps them to settings: its ``search_efforts``)
+EFFORTS = ("fast", "default", "best")
+
+
 @dataclass
 class SearchConfig:
     """Search from scratch: greedy insertion or a beam over partial programs, then :func:`refine`."""
 
+    #: the effort level (:data:`EFFORTS`) whose settings (the domain's ``search_efforts``) this configuration
+    #: starts from; only recorded here, applied by :func:`search_config`
+    effort: str = "default"
     #: insertion steps from the empty program, greedy or of the beam (fewer if the language's length cap is
     #: reached)
     insertions: int = 12
@@ -71,6 +83,8 @@ class SearchConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
 
     def __post_init__(self):
+        if self.effort not in EFFORTS:
+            raise ValueError(f"effort = {self.effort!r}: expected one of {', '.join(EFFORTS)}")
         if self.beam_refine < 1:
             raise ValueError(f"beam_refine = {self.beam_refine}: expected at least 1")
         if self.beam_width < 0:
@@ -91,14 +105,21 @@ class Result:
 
 
 def search_config(domain: Domain, **overrides) -> SearchConfig:
-    """The domain's default search configuration (its ``search_defaults``), with ``overrides``.
+    """The domain's search configuration at an effort level, with ``overrides``.
 
-    Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
+    The settings are, each overriding the one before: the domain's ``search_defaults``, its
+    ``search_efforts`` of the level ``overrides["effort"]`` (default ``"default"``), the other
+    ``overrides``. Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
     """
     from plad.config import ConfigError, build
 
+    effort = overrides.get("effort", "default")
+    if effort not in EFFORTS:
+        raise ConfigError(f"search configuration: effort = {effort!r}: expected one of {', '.join(EFFORTS)}")
+    space = domain.rewrite
     raw: dict = {}
-    for source in (dict(domain.rewrite.search_defaults) if domain.rewrite else {}, overrides):
+    for source in (dict(space.search_defaults) if space else {}, dict(space.search_efforts[effort]) if space else {},
+                   overrides):
         for key, value in source.items():
             if key.startswith("refine."):
                 raw.setdefault("refine", {})[key.split(".", 1)[1]] = value
@@ -238,4 +259,4 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
     return Result(out_programs, values, time.perf_counter() - start, stats, timed)
 
 
-__all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]
+__all__ = ["EFFORTS", "RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

@@ -94,6 +94,11 @@ class CSG2DRewrite(RewriteSpace):
     # greedy chain of up to 7 primitives, then one round of refinement (PO sweeps to a local
     # optimum, pruning): on 100 CAD test shapes CD 1.178 -> 0.986; more rounds gain < 0.003
     search_defaults = {"insertions": 7, "refine": {"rounds": 1}}
+    # effort levels (100 evenly spaced CAD test shapes, one thread, CPU s per shape; docs/inference.md): fast is
+    # the greedy search above (0.964, 0.13 s); default a beam of 2 over left-deep chains with every operator,
+    # its 2 best finds refined (0.851, 0.28 s); best a beam of 8, its 4 best finds refined (0.800, 0.78 s)
+    search_efforts = {"fast": {}, "default": {"beam_width": 2, "beam_refine": 2},
+                      "best": {"beam_width": 8, "beam_refine": 4}}
 
     def __init__(self, domain, insert_ops: Sequence[str] = ("union", "difference")):
         super().__init__(domain)

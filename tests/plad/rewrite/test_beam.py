@@ -1,4 +1,4 @@
-"""Beam search over partial programs (plad.rewrite.beam)."""
+"""Beam search over partial programs (plad.rewrite.beam) and the effort levels of a search."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from plad.config import ConfigError
-from plad.domains import get_domain
+from plad.domains import domain_names, get_domain
 from plad.domains.base import pad_programs
-from plad.rewrite import search, search_config
+from plad.rewrite import EFFORTS, search, search_config
 from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer
 
@@ -83,3 +83,35 @@ def test_bad_beam_settings_are_one_line():
         with pytest.raises(ConfigError, match=f"{key} = {value}: expected") as err:
             search_config(domain, **{key: value})
         assert len(str(err.value).splitlines()) == 1
+
+
+def test_effort_levels_are_monotone_in_work():
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 2, 2)
+    work, values = [], []
+    for effort in EFFORTS:      # three primitives at most, two PO sweeps: a tiny case
+        result = search(domain, targets, search_config(domain, effort=effort, insertions=3, **{"refine.po_sweeps": 2}))
+        work.append(result.stats.screened + result.stats.scored)
+        values.append(float(result.values.mean()))
+        assert torch.equal(domain.metric(_execute(domain, result.programs), targets), result.values)
+    assert work[0] < work[1] < work[2], work
+    assert search_config(domain, effort="fast").beam_width == 0      # fast: the greedy search
+    # settings given beside the effort override the level's
+    assert search_config(domain, effort="best", beam_width=3).beam_width == 3
+
+
+@pytest.mark.parametrize("name", domain_names())
+def test_every_domain_declares_every_effort(name):
+    space = get_domain(name).rewrite
+    assert set(space.search_efforts) == set(EFFORTS)
+    configs = [search_config(get_domain(name), effort=e) for e in EFFORTS]
+    assert [c.effort for c in configs] == list(EFFORTS)
+
+
+def test_bad_effort_is_one_line():
+    domain = get_domain("csg2d")
+    for bad in ("quick", 3):
+        with pytest.raises(ConfigError) as err:
+            search_config(domain, effort=bad)
+        assert len(str(err.value).splitlines()) == 1
+        assert "effort" in str(err.value) and "fast, default, best" in str(err.value)
