@@ -14,8 +14,9 @@ greedy insertion. Every program the beam has held is a candidate answer: the
 ``finals`` best with distinct executions, over all steps, are returned (with
 their exact values) for refinement.
 
-All programs of all beams of a batch of targets are extended, screened and
-scored in single batched calls of the domain's executor and metric.
+The programs of all beams of a batch of targets are extended, screened and
+scored together, :data:`PROGRAMS_PER_CALL` programs per batched call of the
+domain's executor and metric.
 """
 from __future__ import annotations
 
@@ -26,6 +27,11 @@ import numpy as np
 import torch
 
 from plad.rewrite.evaluate import Scorer, oriented
+
+#: beam programs extended in one call of the candidate generator and the scorer (a 2D CSG program has 1,272
+#: children): bounds the memory of a batch of many shapes; the result does not depend on it, since each
+#: program's children are ranked on their own
+PROGRAMS_PER_CALL = 64
 
 
 def _keys(outputs: torch.Tensor) -> list[bytes]:
@@ -78,14 +84,22 @@ def beam_search(scorer: Scorer, width: int, steps: int, finals: int = 1,
     for _ in range(steps):
         if not beam or (deadline is not None and time.perf_counter() > deadline):
             break
-        cands = scorer.space.extensions(beam, outputs, scorer.targets[target])
-        if not len(cands):
+        children, parent, parts = [], [], []
+        for start in range(0, len(beam), PROGRAMS_PER_CALL):
+            sl = slice(start, start + PROGRAMS_PER_CALL)
+            cands = scorer.space.extensions(beam[sl], outputs[sl], scorer.targets[target[sl]])
+            if not len(cands):
+                continue
+            group = cands.owner.numpy()                             # the beam program each child extends
+            cands.owner = torch.from_numpy(target[sl])[cands.owner]  # the target each child is scored against
+            rows, values = scorer.top(cands, group, width)
+            children += [cands.row(int(r)) for r in rows]
+            parent.append(group[rows] + start)
+            parts.append(values)
+        if not children:
             break
-        group = cands.owner.numpy()                             # the beam program each child extends
-        cands.owner = torch.from_numpy(target)[cands.owner]     # the target each child is scored against
-        rows, values = scorer.top(cands, group, width)
-        children = [cands.row(int(r)) for r in rows]
-        child_target = target[group[rows]]
+        values = np.concatenate(parts)
+        child_target = target[np.concatenate(parent)]
         child_outputs = scorer.outputs(children)
         keys = _keys(child_outputs)
         rank = oriented(torch.from_numpy(values), hib).numpy()

@@ -49,6 +49,16 @@ def test_beam_finds_are_distinct_sorted_and_exact():
         beam_search(scorer, width=0, steps=3)
 
 
+def test_beam_finds_do_not_depend_on_how_many_programs_are_extended_at_once(monkeypatch):
+    import plad.rewrite.beam as beam
+
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 4, 3)
+    together = beam_search(Scorer(domain, targets), width=2, steps=2, finals=2)
+    monkeypatch.setattr(beam, "PROGRAMS_PER_CALL", 1)
+    assert beam_search(Scorer(domain, targets), width=2, steps=2, finals=2) == together
+
+
 def test_beam_rebuilds_an_intersection_that_greedy_insertion_cannot():
     """Greedy insertion offers union and difference; the beam's children use every operator."""
     domain = get_domain("csg2d")
