@@ -139,6 +139,12 @@ class RewriteSpace(abc.ABC):
     screen_keep: int | None = None
     #: Per-domain defaults of :class:`plad.rewrite.driver.SearchConfig` (field -> value).
     search_defaults: ClassVar[dict[str, Any]] = {}
+    #: What each effort level of a search (:data:`plad.rewrite.driver.EFFORTS`) changes in
+    #: :attr:`search_defaults` (level -> field -> value), each level at least as much work as the one before.
+    #: This default, for a domain that has not measured its own: fast skips the refinement after the greedy
+    #: insertions, default is :attr:`search_defaults` itself, best refines for up to 3 rounds.
+    search_efforts: ClassVar[dict[str, dict[str, Any]]] = {
+        "fast": {"refine": {"rounds": 0}}, "default": {}, "best": {"refine": {"rounds": 3}}}
 
     def __init__(self, domain: Domain):
         self.domain = domain
@@ -164,6 +170,14 @@ class RewriteSpace(abc.ABC):
         ``programs``. The inserted tokens must form the program's last PO block
         (so that :func:`plad.rewrite.po.optimize` with ``last_only`` tunes them).
         """
+
+    def extensions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
+                   targets: torch.Tensor) -> Candidates:
+        """The children of partial programs in beam search (:mod:`plad.rewrite.beam`): programs one
+        primitive (or part) longer, arguments as :meth:`insertions`. A beam explores where a greedy
+        insertion would not, so a domain may offer more here (e.g. every operator, not only those that
+        pay greedily). Default: :meth:`insertions`."""
+        return self.insertions(programs, outputs, targets)
 
     # ---- CP ---------------------------------------------------------------------------------
     def nodes(self, program: Sequence[int]) -> list[Node]:

@@ -2,11 +2,12 @@
 
 Usage::
 
-    python -m plad.rewrite.baseline DOMAIN [--split test] [--limit N] [--workers W]
+    python -m plad.rewrite.baseline DOMAIN [--split test] [--limit N | --spaced N] [--workers W]
         [--prepared data/prepared] [--set KEY=VALUE ...] [--out FILE.json]
 
 Runs :func:`plad.rewrite.search` (the domain's default search configuration,
-with ``--set`` overrides) on the prepared shapes of a split, split into
+with ``--set`` overrides, e.g. ``--set effort=best``) on the prepared shapes of a split (all,
+the first ``--limit``, or ``--spaced`` N evenly spaced over it as the stages' ``limit``), split into
 ``--workers`` contiguous chunks searched by as many processes (each with one
 torch thread), and prints a summary: mean metric, wall seconds per shape,
 process seconds per shape, CPU seconds per shape (what the processes really
@@ -96,13 +97,15 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
-    from plad.data.files import load_prepared
+    from plad.data.files import load_prepared, load_split
     from plad.fsutil import atomic_write_text
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("domain")
     parser.add_argument("--split", default="test")
     parser.add_argument("--limit", type=int, default=None, help="first N shapes only")
+    parser.add_argument("--spaced", type=int, default=None,
+                        help="N shapes evenly spaced over the split (as the stages' limit)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--prepared", default="data/prepared", help="folder of the prepared <domain>.npz")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -114,7 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     if not path.is_file():
         print(f"{path}: no such prepared dataset (run the prepare stages first)", file=sys.stderr)
         return 1
-    targets = load_prepared(path, args.split)[: args.limit]
+    if args.spaced is not None and args.limit is not None:
+        print("--limit and --spaced: give one of them", file=sys.stderr)
+        return 2
+    if args.spaced is not None:
+        targets = load_split(path, args.split, args.spaced)[0]
+    else:
+        targets = load_prepared(path, args.split)[: args.limit]
     overrides = {}
     for item in args.set:
         key, _, text = item.partition("=")

@@ -3,10 +3,16 @@
 Both work on many shapes at once: the rewriters batch all candidates of all
 programs of a batch of shapes into single calls of the domain's executor and
 metric. ``refine`` repeats rounds of PO sweeps, pruning and one insertion
-until a round changes nothing; ``search`` starts from the empty program,
-inserts primitives greedily (each new primitive optionally tuned by PO on
-its own parameters), then refines. No step ever makes a program worse, and
-every returned value is re-executed and re-scored at the end.
+until a round changes nothing; ``search`` starts from the empty program and
+either inserts primitives greedily (each new primitive optionally tuned by PO
+on its own parameters) or runs a beam search over partial programs
+(:mod:`.beam`), then refines. No step ever makes a program worse, and every
+returned value is re-executed and re-scored at the end.
+
+One knob sets the effort of a search: ``effort`` (:data:`EFFORTS`), whose
+levels each domain maps to settings (its
+:attr:`~plad.domains.space.RewriteSpace.search_efforts`); settings given
+beside it override the level's.
 """
 from __future__ import annotations
 
@@ -17,7 +23,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from plad.rewrite.evaluate import Scorer, Stats
+from plad.rewrite.beam import beam_search
+from plad.rewrite.evaluate import Scorer, Stats, improves
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import TOLERANCE, prune
@@ -50,17 +57,38 @@ class RefineConfig:
     screen: bool = True
 
 
+#: the effort levels of a search, least work first (each domain maps them to settings: its ``search_efforts``)
+EFFORTS = ("fast", "default", "best")
+
+
 @dataclass
 class SearchConfig:
-    """Search from scratch: greedy insertion, then :func:`refine`."""
+    """Search from scratch: greedy insertion or a beam over partial programs, then :func:`refine`."""
 
-    #: greedy insertion steps from the empty program (fewer if the language's length cap is reached)
+    #: the effort level (:data:`EFFORTS`) whose settings (the domain's ``search_efforts``) this configuration
+    #: starts from; only recorded here, applied by :func:`search_config`
+    effort: str = "default"
+    #: insertion steps from the empty program, greedy or of the beam (fewer if the language's length cap is
+    #: reached)
     insertions: int = 12
+    #: beam width: programs kept per shape at each step of a beam search over partial programs
+    #: (:mod:`plad.rewrite.beam`); 0: greedy insertion instead
+    beam_width: int = 0
+    #: the best distinct programs the beam found that are each refined; the best refined one is returned
+    beam_refine: int = 1
     #: PO sweeps over each inserted primitive's own block right after its insertion
     tune_sweeps: int = 0
     #: whether that tuning uses the large choice sets
     tune_wide: bool = False
     refine: RefineConfig = field(default_factory=RefineConfig)
+
+    def __post_init__(self):
+        if self.effort not in EFFORTS:
+            raise ValueError(f"effort = {self.effort!r}: expected one of {', '.join(EFFORTS)}")
+        if self.beam_refine < 1:
+            raise ValueError(f"beam_refine = {self.beam_refine}: expected at least 1")
+        if self.beam_width < 0:
+            raise ValueError(f"beam_width = {self.beam_width}: expected 0 (greedy insertion) or a width of at least 1")
 
 
 @dataclass
@@ -77,14 +105,21 @@ class Result:
 
 
 def search_config(domain: Domain, **overrides) -> SearchConfig:
-    """The domain's default search configuration (its ``search_defaults``), with ``overrides``.
+    """The domain's search configuration at an effort level, with ``overrides``.
 
-    Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
+    The settings are, each overriding the one before: the domain's ``search_defaults``, its
+    ``search_efforts`` of the level ``overrides["effort"]`` (default ``"default"``), the other
+    ``overrides``. Keys ``refine.<field>`` (or a ``refine`` mapping) set fields of the refine part.
     """
     from plad.config import ConfigError, build
 
+    effort = overrides.get("effort", "default")
+    if effort not in EFFORTS:
+        raise ConfigError(f"search configuration: effort = {effort!r}: expected one of {', '.join(EFFORTS)}")
+    space = domain.rewrite
     raw: dict = {}
-    for source in (dict(domain.rewrite.search_defaults) if domain.rewrite else {}, overrides):
+    for source in (dict(space.search_defaults) if space else {}, dict(space.search_efforts[effort]) if space else {},
+                   overrides):
         for key, value in source.items():
             if key.startswith("refine."):
                 raw.setdefault("refine", {})[key.split(".", 1)[1]] = value
@@ -121,6 +156,33 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
             programs, values, _ = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False, deadline=deadline)
         if programs == before:
             break
+    return programs, values
+
+
+def _beam_then_refine(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
+                      deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
+    """Beam search, then refinement of each shape's ``beam_refine`` best finds; per shape the best result,
+    if it beats the start (``programs``, ``values``)."""
+    finds = beam_search(scorer, cfg.beam_width, cfg.insertions, cfg.beam_refine, deadline)
+    starts = [p for f in finds for p, _ in f]
+    owner = [i for i, f in enumerate(finds) for _ in f]
+    if not starts:
+        return programs, values
+    start_values = torch.tensor([v for f in finds for _, v in f], dtype=torch.float64)
+    if cfg.beam_refine == 1:
+        sub = scorer
+    else:   # each find refined against its own copy of its target
+        sub = Scorer(scorer.domain, scorer.targets[owner], screen=scorer.use_screen)
+    refined, refined_values = _refine_batch(sub, starts, start_values, cfg.refine, deadline)
+    if sub is not scorer:
+        scorer.stats.add(sub.stats)
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    for k, i in enumerate(owner):    # finds of a shape in order: the best refined one wins (ties: fewer tokens)
+        if bool(improves(refined_values[k:k + 1], torch.tensor([len(refined[k])]), values[i:i + 1],
+                         torch.tensor([len(programs[i])]), scorer.higher_is_better)):
+            programs[i] = refined[k]
+            values[i] = refined_values[k]
     return programs, values
 
 
@@ -164,7 +226,8 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
 
 
 def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
-    """Search from scratch for each target (B, *shape) bool: greedy insertion, then refinement."""
+    """Search from scratch for each target (B, *shape) bool: greedy insertion or a beam search, then
+    refinement."""
     cfg = config or search_config(domain)
     start = time.perf_counter()
     stats = Stats()
@@ -177,14 +240,17 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
         programs: list[list[int]] = [[] for _ in range(n)]
         values = scorer.values(programs)
         deadline = None if cfg.refine.time_limit is None else time.perf_counter() + cfg.refine.time_limit
-        growing = list(range(n))
-        for _ in range(cfg.insertions):
-            if not growing or (deadline is not None and time.perf_counter() > deadline):
-                break
-            programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps, cfg.tune_wide,
-                                                      only=growing, deadline=deadline)
-            growing = torch.nonzero(inserted).flatten().tolist()
-        programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
+        if cfg.beam_width > 0:
+            programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
+        else:
+            growing = list(range(n))
+            for _ in range(cfg.insertions):
+                if not growing or (deadline is not None and time.perf_counter() > deadline):
+                    break
+                programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps,
+                                                          cfg.tune_wide, only=growing, deadline=deadline)
+                growing = torch.nonzero(inserted).flatten().tolist()
+            programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
         timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))
         out_programs += programs
@@ -193,4 +259,4 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
     return Result(out_programs, values, time.perf_counter() - start, stats, timed)
 
 
-__all__ = ["RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]
+__all__ = ["EFFORTS", "RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]

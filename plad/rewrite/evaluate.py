@@ -195,6 +195,29 @@ class Scorer:
         self.stats.screened += C
         return scores
 
+    def top(self, cands: Candidates, group: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` best candidates of each group (group: (C,) int, e.g. the beam entry a candidate extends;
+        the target is still ``cands.owner``): (rows (M,) long, their exact values (M,) float64), ordered by
+        group, then metric, then fewer tokens, then row.
+
+        With a domain screen (and ``use_screen``), only each group's ``max(screen_keep, k)`` best by the
+        cheap score are scored exactly.
+        """
+        rows = np.arange(len(cands))
+        lengths = cands.lengths.numpy()
+        keep = self.space.screen_keep
+        if (self.use_screen and keep is not None and len(cands)
+                and np.bincount(group).max() > max(keep, k)):
+            rows = top_per_group(self.screen(cands).numpy(), lengths, group, max(keep, k))
+        values = self.exact(cands.tokens[rows], cands.owner[rows]).numpy()
+        # top_per_group keeps the k highest scores: the metric turned so that higher is better
+        pick = top_per_group(-oriented(torch.from_numpy(values), self.higher_is_better).numpy(), lengths[rows],
+                             group[rows], k)
+        order = np.lexsort((rows[pick], lengths[rows][pick],
+                            oriented(torch.from_numpy(values[pick]), self.higher_is_better).numpy(), group[rows][pick]))
+        pick = pick[order]
+        return rows[pick], values[pick]
+
     def best(self, cands: Candidates, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Best candidate of each of ``n`` programs: (row (n,) long, -1 where a program has no
         candidate; its exact value (n,) float64, the worst value where none).

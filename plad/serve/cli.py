@@ -6,7 +6,7 @@
     plad data check | download
     plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/ [--no-refine]
     plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
-    plad search DOMAIN shape.npy --set insertions=8
+    plad search DOMAIN shape.npy [--effort fast|default|best] [--set insertions=8]
     plad models
     plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
 
@@ -313,8 +313,9 @@ def _program_text(text: str) -> str:
     return text
 
 
-def _search_setup(domain_name: str, overrides: list[str]):
-    """(domain, search configuration with ``--set KEY=VALUE`` overrides)."""
+def _search_setup(domain_name: str, overrides: list[str], effort: str | None = None):
+    """(domain, search configuration at ``effort`` (None: the default level) with ``--set KEY=VALUE``
+    overrides)."""
     import yaml
 
     from plad.config import ConfigError, safe_yaml
@@ -335,6 +336,10 @@ def _search_setup(domain_name: str, overrides: list[str]):
             raise UsageError(f"--set {item!r}: value is not valid YAML") from None
         except (ValueError, RecursionError) as err:
             raise UsageError(f"--set {item!r}: refused: {one_line(err)}") from None
+    if effort is not None:
+        if "effort" in values and values["effort"] != effort:
+            raise UsageError(f"--effort {effort} and --set effort={values['effort']}: give the effort once")
+        values["effort"] = effort
     try:
         return domain, search_config(domain, **values)
     except ConfigError as err:
@@ -378,7 +383,7 @@ def cmd_search(args: argparse.Namespace) -> int:
 
     from plad.rewrite import search
 
-    domain, cfg = _search_setup(args.domain, args.set)
+    domain, cfg = _search_setup(args.domain, args.set, args.effort)
     out = check_output(args.output, (args.file,))
     items = read_shapes(args.file, domain.shape)
     good = [it for it in items if it.error is None]
@@ -561,8 +566,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("domain", choices=domain_names())
     p.add_argument("file", help="target shape(s): .png or .npy (N, *shape), as for plad score")
     p.add_argument("-o", "--output", help="also write the programs, one per line, to this file")
+    # not argparse choices: a bad value is the one-line error of the search configuration (exit status 2)
+    p.add_argument("--effort", default=None, metavar="LEVEL",
+                   help="how hard to search: fast, default or best (more time, better programs); what each "
+                        "level means is the domain's (docs/inference.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="search setting, e.g. insertions=5 or refine.rounds=1 (repeatable)")
+                   help="search setting over the effort level's, e.g. insertions=5 or refine.rounds=1 (repeatable)")
     p.set_defaults(func=cmd_search)
 
     p = sub.add_parser("models", help="list the shipped and the registered models with their test metrics; "

@@ -12,7 +12,8 @@
 * Insertion: every draw token combined with the program by each of the
   insertion operators (union and difference by default) at the root, i.e.
   ``P d op $``; from the empty program, ``d $``. No residual analysis is
-  needed: the screen scores all of them.
+  needed: the screen scores all of them. The beam's extensions are the same
+  with all three operators (a left-deep chain grows by one primitive).
 * Screen: an approximate Chamfer distance computed with bit operations on
   the executor's bit-packed canvases (bit c of word r is pixel [r, c]), ~30
   times cheaper than the exact metric; the ``screen_keep`` best per program
@@ -93,6 +94,13 @@ class CSG2DRewrite(RewriteSpace):
     # greedy chain of up to 7 primitives, then one round of refinement (PO sweeps to a local
     # optimum, pruning): on 100 CAD test shapes CD 1.178 -> 0.986; more rounds gain < 0.003
     search_defaults = {"insertions": 7, "refine": {"rounds": 1}}
+    # effort levels (100 evenly spaced CAD test shapes, one thread, CPU s per shape; docs/inference.md): fast is
+    # the greedy search above (0.964, 0.13 s); default a beam of 2 over left-deep chains with every operator,
+    # its 2 best finds refined (0.851, 0.28 s; a beam of 3: 0.833, 0.37 s, too close to the 10 minutes that all
+    # 3,000 test shapes may take on 2 workers); best a beam of 8, its 8 best finds refined (0.787, 1.08 s; 4
+    # refined: 0.800, 0.78 s; a beam of 16, 4 refined: 0.786, 1.40 s)
+    search_efforts = {"fast": {}, "default": {"beam_width": 2, "beam_refine": 2},
+                      "best": {"beam_width": 8, "beam_refine": 8}}
 
     def __init__(self, domain, insert_ops: Sequence[str] = ("union", "difference")):
         super().__init__(domain)
@@ -104,6 +112,7 @@ class CSG2DRewrite(RewriteSpace):
         self.draws = np.array([i for i, t in enumerate(table.tokens) if t.kind == "draw"], dtype=np.int64)
         self.ops = {t.kind: i for i, t in enumerate(table.tokens) if t.kind in _OPERATORS}
         self.insert_ops = np.array([self.ops[o] for o in insert_ops], dtype=np.int64)
+        self.all_ops = np.array([self.ops[o] for o in _OPERATORS], dtype=np.int64)
         self._other_ops = {i: tuple(j for j in self.ops.values() if j != i) for i in self.ops.values()}
         self._all_others = {int(d): tuple(int(e) for e in self.draws if e != d) for d in self.draws}
         self._neighbours = {int(d): self._grid_neighbours(int(d)) for d in self.draws}
@@ -141,7 +150,16 @@ class CSG2DRewrite(RewriteSpace):
     # ---- insertion ---------------------------------------------------------------------------
     def insertions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
                    targets: torch.Tensor) -> Candidates:
-        """``P d op $`` for every draw d and insertion operator op (``d $`` from the empty program).
+        """``P d op $`` for every draw d and insertion operator op (``d $`` from the empty program)."""
+        return self._grow(programs, self.insert_ops)
+
+    def extensions(self, programs: Sequence[Sequence[int]], outputs: torch.Tensor,
+                   targets: torch.Tensor) -> Candidates:
+        """The beam's children: ``P d op $`` for every draw d and every operator (a left-deep chain grows)."""
+        return self._grow(programs, self.all_ops)
+
+    def _grow(self, programs: Sequence[Sequence[int]], ops: np.ndarray) -> Candidates:
+        """``P d op $`` for every draw d and op in ``ops`` (``d $`` from the empty program).
 
         Each (program, op) is a template whose draw position takes every draw token.
         """
@@ -151,7 +169,7 @@ class CSG2DRewrite(RewriteSpace):
                 templates.append([int(self.draws[0]), self.stop])
                 owners.append(i)
             elif len(p) + 2 <= self.max_len:
-                for op in self.insert_ops:
+                for op in ops:
                     templates.append(list(p[:-1]) + [int(self.draws[0]), int(op), self.stop])
                     owners.append(i)
         if not templates:

@@ -42,6 +42,15 @@ def test_search_from_scratch_prints_program_and_metric(tmp_path, capsys):
     assert np.array_equal(render(lines[2]), render("c(32,32,16)$"))
 
 
+def test_search_takes_an_effort_level(tmp_path, capsys):
+    target = tmp_path / "two.npy"
+    np.save(target, np.stack([render("s(24,24,16)c(40,40,12)+$"), render("c(32,32,16)$")]))
+    for effort in ("fast", "best"):
+        assert main(["search", "csg2d", str(target), "--effort", effort, "--set", "insertions=2"]) == 0
+        lines = capsys.readouterr().out.strip().splitlines()
+        assert lines[-1] == "mean 0.000000"
+
+
 def test_bad_input_is_one_line(tmp_path, capsys):
     targets = tmp_path / "two.npy"
     np.save(targets, np.stack([render("c(32,32,16)$")] * 2))
@@ -52,6 +61,8 @@ def test_bad_input_is_one_line(tmp_path, capsys):
         (("search", "csg2d", str(targets), "--set", "sweeps=3"), "unknown key(s) sweeps"),
         (("search", "csg2d", str(targets), "--set", "insertions"), "expected KEY=VALUE"),
         (("search", "csg2d", str(targets), "--set", "refine=3"), "refine = 3: expected a mapping of refine settings"),
+        (("search", "csg2d", str(targets), "--effort", "quick"), "'quick': expected one of fast, default, best"),
+        (("search", "csg2d", str(targets), "--effort", "fast", "--set", "effort=best"), "give the effort once"),
     ]
     for args, message in cases:
         assert main(list(args)) == 2, args

@@ -90,6 +90,9 @@ def test_search_only_writes_the_row_with_seconds_per_shape(root):
         pytest.approx(got["test"]["mean"], abs=1e-6)
     with pytest.raises(ConfigError, match="search"):
         search_only(SearchOnlyConfig(domain="csg2d", limit=1, search={"insertionz": 2}), layout)
+    with pytest.raises(ConfigError, match="effort = 'quick': expected one of fast, default, best") as err:
+        search_only(SearchOnlyConfig(domain="csg2d", limit=1, search={"effort": "quick"}), layout)
+    assert len(str(err.value).splitlines()) == 1
 
 
 def _metrics(layout: Layout, key: str, domain: str, mean: float, seconds: float, n: int = 10, **extra) -> None:

@@ -1,0 +1,127 @@
+"""Beam search over partial programs (plad.rewrite.beam) and the effort levels of a search."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from plad.config import ConfigError
+from plad.domains import domain_names, get_domain
+from plad.domains.base import pad_programs
+from plad.rewrite import EFFORTS, search, search_config
+from plad.rewrite.beam import beam_search
+from plad.rewrite.evaluate import Scorer
+
+
+def _execute(domain, programs):
+    return domain.execute(pad_programs(programs))
+
+
+def _targets(domain, n: int, seed: int) -> torch.Tensor:
+    """Executions of sampled programs, half of them with a square carved out (off the sampler's family)."""
+    rng = np.random.default_rng(seed)
+    targets = _execute(domain, domain.sample(n, rng))
+    hole = _execute(domain, [domain.parse("s(32,32,12)$")])[0]
+    targets[::2] &= ~hole
+    return targets
+
+
+def test_beam_finds_are_distinct_sorted_and_exact():
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 6, 0)
+    scorer = Scorer(domain, targets)
+    finds = beam_search(scorer, width=3, steps=3, finals=4)
+    assert len(finds) == len(targets)
+    for i, found in enumerate(finds):
+        assert 1 <= len(found) <= 4
+        programs = [p for p, _ in found]
+        values = torch.tensor([v for _, v in found], dtype=torch.float64)
+        for p in programs:
+            domain.check(p)
+            assert len(p) <= 6                                 # at most 3 primitives: d d op d op $
+        # each value is the domain's own executor and metric; best first; distinct executions
+        assert torch.equal(domain.metric(_execute(domain, programs), targets[i:i + 1].expand(len(programs), -1, -1)),
+                           values)
+        assert values.tolist() == sorted(values.tolist())
+        outs = _execute(domain, programs).reshape(len(programs), -1)
+        assert len({bytes(o.numpy()) for o in outs}) == len(programs)
+    with pytest.raises(ValueError, match="at least 1"):
+        beam_search(scorer, width=0, steps=3)
+
+
+def test_beam_finds_do_not_depend_on_how_many_programs_are_extended_at_once(monkeypatch):
+    import plad.rewrite.beam as beam
+
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 4, 3)
+    together = beam_search(Scorer(domain, targets), width=2, steps=2, finals=2)
+    monkeypatch.setattr(beam, "PROGRAMS_PER_CALL", 1)
+    assert beam_search(Scorer(domain, targets), width=2, steps=2, finals=2) == together
+
+
+def test_beam_rebuilds_an_intersection_that_greedy_insertion_cannot():
+    """Greedy insertion offers union and difference; the beam's children use every operator."""
+    domain = get_domain("csg2d")
+    target = _execute(domain, [domain.parse("s(32,32,24)t(32,40,28)*$")])
+    beam = search(domain, target, search_config(domain, beam_width=4, insertions=2, **{"refine.rounds": 0}))
+    assert float(beam.values[0]) == 0.0
+    greedy = search(domain, target, search_config(domain, beam_width=0, insertions=2, **{"refine.rounds": 0}))
+    assert float(greedy.values[0]) > 0.0
+
+
+def test_beam_search_is_never_worse_than_its_start_and_reports_exact_values():
+    """The start of a search is the empty program; the beam's first step already holds the best single
+    primitive, so nothing it returns is worse than the one-primitive floor; and refinement keeps it so."""
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 8, 1)
+    floor = Scorer(domain, targets).values(domain.floor(targets.numpy()))
+    for refine_rounds, beam_refine in ((0, 1), (1, 2)):
+        cfg = search_config(domain, beam_width=2, insertions=3, beam_refine=beam_refine,
+                            **{"refine.rounds": refine_rounds, "refine.po_sweeps": 1})
+        result = search(domain, targets, cfg)
+        assert bool((result.values <= floor).all())
+        assert torch.equal(domain.metric(_execute(domain, result.programs), targets), result.values)
+        if refine_rounds == 0:
+            unrefined = result.values
+    # refining the beam's finds never makes the answer worse than the beam's best find
+    assert bool((result.values <= unrefined).all())
+
+
+def test_bad_beam_settings_are_one_line():
+    domain = get_domain("csg2d")
+    for key, value in (("beam_width", -1), ("beam_refine", 0)):
+        with pytest.raises(ConfigError, match=f"{key} = {value}: expected") as err:
+            search_config(domain, **{key: value})
+        assert len(str(err.value).splitlines()) == 1
+
+
+def test_effort_levels_are_monotone_in_work():
+    domain = get_domain("csg2d")
+    targets = _targets(domain, 2, 2)
+    work, values = [], []
+    for effort in EFFORTS:      # three primitives at most, two PO sweeps: a tiny case
+        result = search(domain, targets, search_config(domain, effort=effort, insertions=3, **{"refine.po_sweeps": 2}))
+        work.append(result.stats.screened + result.stats.scored)
+        values.append(float(result.values.mean()))
+        assert torch.equal(domain.metric(_execute(domain, result.programs), targets), result.values)
+    assert work[0] < work[1] < work[2], work
+    assert search_config(domain, effort="fast").beam_width == 0      # fast: the greedy search
+    # settings given beside the effort override the level's
+    assert search_config(domain, effort="best", beam_width=3).beam_width == 3
+
+
+@pytest.mark.parametrize("name", domain_names())
+def test_every_domain_declares_every_effort(name):
+    space = get_domain(name).rewrite
+    assert set(space.search_efforts) == set(EFFORTS)
+    configs = [search_config(get_domain(name), effort=e) for e in EFFORTS]
+    assert [c.effort for c in configs] == list(EFFORTS)
+
+
+def test_bad_effort_is_one_line():
+    domain = get_domain("csg2d")
+    for bad in ("quick", 3):
+        with pytest.raises(ConfigError) as err:
+            search_config(domain, effort=bad)
+        assert len(str(err.value).splitlines()) == 1
+        assert "effort" in str(err.value) and "fast, default, best" in str(err.value)
