@@ -167,7 +167,9 @@ def _creation_lock(uri: str) -> Iterator[None]:
     if db is None or fcntl is None or not db.parent.is_dir():
         yield
         return
-    lock = Path(f"{db}.rows.lock")
+    # the store's own lock file (plad.tracking.store), taken here after the store is open: one lock file
+    # beside a store, which .gitignore and the store's checks already know
+    lock = Path(f"{db}.lock")
     with open(lock, "a") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:

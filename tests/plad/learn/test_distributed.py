@@ -66,7 +66,8 @@ def test_two_process_pretraining_keeps_ranks_equal_writes_once_and_resumes(tmp_p
     assert (out / HISTORY).read_text().splitlines()[0] == \
         (resumed.pretrain_dir("csg2d") / HISTORY).read_text().splitlines()[0]
     # one MLflow run per stage command, all rank 0's (the stopped run had finished: its restart is a new run)
-    assert mlflow_runs(tmp_path / "mlflow.db") == ["pretrain/csg2d"] * 3
+    # (nested under the row run of (smoke, csg2d, sp), plad.tracking.rows, made by the first)
+    assert mlflow_runs(tmp_path / "mlflow.db") == ["csg2d · sp"] + ["pretrain"] * 3
     assert left_behind(before) == []
 
 
@@ -109,6 +110,8 @@ def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path,
     pbest = PBest.load(layout.finetune_dir("csg2d", "lest_st_ws") / "pbest.npz", domain.metric)
     assert [pbest.program(i) for i in range(30)] == [domain.canonical(p) for p in programs]   # stored canonical
     assert np.allclose(pbest.values, values, atol=1e-9)
-    parents = [n for n in mlflow_runs(tmp_path / "mlflow.db") if n.startswith("finetune/")]
-    assert parents == ["finetune/lest_st_ws/csg2d", "finetune/rl/csg2d"]
+    # one stage run per method (rank 0's), each under its row run (plad.tracking.rows)
+    names = mlflow_runs(tmp_path / "mlflow.db")
+    assert [n for n in names if n.startswith("csg2d · ")] == ["csg2d · lest_st_ws", "csg2d · rl"]
+    assert names.count("finetune") == 2
     assert left_behind(before) == []
