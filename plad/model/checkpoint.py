@@ -17,7 +17,9 @@ converted once, from a trusted source only, by::
 """
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import os
 import pickle
 import sys
@@ -96,6 +98,21 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a PLAD checkpoint (expected format {FORMAT})")
     return payload
+
+
+def network_digest(path: str | os.PathLike) -> str:
+    """sha256 of the network a checkpoint holds: its domain, tokens, config and weights (names, dtypes, shapes,
+    values), not the bytes of the file, which also hold the wall-clock provenance of its training (two runs
+    that train the same weights write files that differ in their seconds)."""
+    payload = read_checkpoint(path)
+    h = hashlib.sha256()
+    h.update(json.dumps([payload.get("domain"), payload.get("tokens"), payload.get("config")],
+                        sort_keys=True).encode())
+    for name, tensor in sorted(payload.get("state_dict", {}).items()):
+        t = tensor.detach().cpu()
+        h.update(f"\n{name} {t.dtype} {tuple(t.shape)}\n".encode())
+        h.update(t.contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 #: the largest network a checkpoint may declare (parameters): the project's are a few million; a config

@@ -123,17 +123,19 @@ ORIGIN = "origin.json"
 
 
 def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> dict:
-    """What a fine-tuning run starts from and would redo differently: the pretrained model's and the real
-    shapes' sha256, the method (without its budget and rounds: more of either extends a run) and the shape
-    limits.
+    """What a fine-tuning run starts from and would redo differently: the pretrained network's digest
+    (:func:`plad.model.checkpoint.network_digest`) and the real shapes' sha256, the method (without its budget
+    and rounds: more of either extends a run) and the shape limits.
 
     The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
     the pretrained model changes; this is what tells a resumable run from a stale one.
     """
     from plad.data.files import _sha256_file
+    from plad.model.checkpoint import network_digest
 
     method = {k: v for k, v in asdict(spec).items() if k not in ("max_minutes", "max_rounds")}
-    return {"model_sha256": _sha256_file(layout.model(cfg.domain)),
+    # the network, not the file's bytes: a pretraining run again writes the same weights with other seconds
+    return {"model_network_sha256": network_digest(layout.model(cfg.domain)),
             "data_sha256": _sha256_file(layout.prepared(cfg.domain)),
             "method": method, "seed": cfg.seed, "train_limit": cfg.train_limit, "val_limit": cfg.val_limit,
             "subset": "evenly spaced"}

@@ -199,7 +199,7 @@ def same_content(a, b, where: str) -> None:
 
 def same_file(a, b, name: str) -> None:
     """Two runs' versions of one output are the same: byte for byte, except the wall-clock measurements a
-    file holds (metrics and state JSON, the loop state in ``last.pt``, a search chunk's seconds, the
+    file holds (metrics and state JSON, the loop state and provenance in checkpoints, a search chunk's seconds, the
     pretraining history's epoch seconds)."""
     import torch
 
@@ -208,7 +208,7 @@ def same_file(a, b, name: str) -> None:
         pa, pb = (json.loads(f.read_text()).get("provenance") for f in (a, b))
         if pa is not None:   # the same settings, by the hash of the stage's resolved params
             assert pb is not None and pa["params_hash"] == pb["params_hash"], name
-    elif a.name == "last.pt":
+    elif a.suffix == ".pt":   # every checkpoint carries its pretraining's provenance, training seconds included
         same_content(torch.load(a, weights_only=True), torch.load(b, weights_only=True), name)
     elif a.suffix == ".npz" and a.parent.parent.name == "search":
         with np.load(a) as za, np.load(b) as zb:

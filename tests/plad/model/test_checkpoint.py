@@ -10,7 +10,14 @@ import pytest
 import torch
 
 from plad.domains import get_domain
-from plad.model.checkpoint import FORMAT, CheckpointError, check_checkpoint, load_model, read_checkpoint
+from plad.model.checkpoint import (
+    FORMAT,
+    CheckpointError,
+    check_checkpoint,
+    load_model,
+    network_digest,
+    read_checkpoint,
+)
 from plad.serve.cli import main
 
 
@@ -51,6 +58,19 @@ def test_a_good_checkpoint_passes_and_loads(good, tmp_path):
     assert domain == "csg2d" and cfg.input_shape == (64, 64)
     model, _ = load_model(tmp_path / "m.pt")
     assert all(torch.equal(model.state_dict()[k], v) for k, v in good["state_dict"].items())
+
+
+def test_the_network_digest_is_that_of_the_weights_not_of_the_files_seconds(good, tmp_path):
+    a, b, c = (tmp_path / f"{n}.pt" for n in "abc")
+    torch.save(good, a)
+    other_seconds = copy.deepcopy(good)
+    other_seconds["provenance"] = {"segments": [{"train_seconds": 1.8}]}
+    torch.save(other_seconds, b)
+    assert a.read_bytes() != b.read_bytes() and network_digest(a) == network_digest(b)
+    other_weight = copy.deepcopy(good)
+    next(iter(other_weight["state_dict"].values())).view(-1)[0] += 1
+    torch.save(other_weight, c)
+    assert network_digest(c) != network_digest(a)
 
 
 @pytest.mark.parametrize("case", sorted(DAMAGE))

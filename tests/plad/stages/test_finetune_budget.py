@@ -61,5 +61,5 @@ def test_a_run_folder_started_from_another_model_is_started_over_not_resumed(lay
     swap_pretrained()                             # another pretrained model: the old rounds are void
     again = finetune_stage(cfg, layout)
     err = capsys.readouterr().err
-    assert "not resuming" in err and "model_sha256 changed" in err and "resuming from" not in err
+    assert "not resuming" in err and "model_network_sha256 changed" in err and "resuming from" not in err
     assert again["units"] == 2
