@@ -197,6 +197,22 @@ def test_refining_every_beam_candidate_is_never_worse_than_the_best_of_beam_only
     assert values["best"] == domain.metric.best_value(alone)
 
 
+def test_infer_takes_an_effort_level_but_not_without_refinement(registry, tmp_path, capsys):
+    save_png(render_2d(PROGRAM_2D), tmp_path / "a.png")
+    for effort in ("best", "fast", "default"):
+        status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--no-refine", "--effort", effort,
+                       "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert status == 2 and len(err) == 1 and "--no-refine" in err[0], err
+    status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--effort", "quick", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "'quick': expected one of fast, default, best" in err[0], err
+    assert not (tmp_path / "out").exists()                   # refused before any work
+    assert main(["infer", "csg2d", str(tmp_path / "a.png"), "--beam", "2", "--effort", "best",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert "1 of 1 shapes inferred and refined" in capsys.readouterr().err
+
+
 def test_infer_obj_mesh_with_a_checkpoint(checkpoints, tmp_path, capsys):
     mesh = tmp_path / "part.obj"
     assert main(["execute", "csg3d", PROGRAM_3D, "-o", str(mesh)]) == 0
