@@ -5,7 +5,7 @@
     plad score DOMAIN --pred pred.npy --target target.npy
     plad data check | download
     plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/ [--effort fast|default|best | --no-refine]
-    plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
+    plad refine DOMAIN PROGRAM --target shape.png -o refined.txt [--effort fast|default|best]
     plad search DOMAIN shape.npy [--effort fast|default|best] [--set insertions=8]
     plad models
     plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
@@ -356,7 +356,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     from plad.rewrite import refine
     from plad.rewrite.evaluate import Scorer
 
-    domain, cfg = _search_setup(args.domain, args.set)
+    domain, cfg = _search_setup(args.domain, args.set, args.effort)
     out = check_output(args.output, (args.program, args.target))
     ids = domain.parse(_program_text(args.program))
     items = read_shapes(args.target, domain.shape)
@@ -565,8 +565,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("--target", required=True, help="the target shape: .png or .npy, as for plad score")
     p.add_argument("-o", "--output", help="also write the refined program's text to this file")
+    p.add_argument("--effort", default=None, metavar="LEVEL",
+                   help="how hard to refine: fast, default or best, as `plad search` refines at that effort "
+                        "level (2D CSG: the same at every level, whose levels differ in their beam; "
+                        "docs/inference.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="search setting, e.g. refine.rounds=5 or refine.wide=false (repeatable)")
+                   help="search setting over the effort level's, e.g. refine.rounds=5 or refine.wide=false "
+                        "(repeatable)")
     p.set_defaults(func=cmd_refine)
 
     p = sub.add_parser("search", help="search for programs of shapes from scratch, without a network")
