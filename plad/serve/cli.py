@@ -4,8 +4,8 @@
     plad export DOMAIN PROGRAM --format FORMAT [-o FILE]
     plad score DOMAIN --pred pred.npy --target target.npy
     plad data check | download
-    plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/ [--no-refine]
-    plad refine DOMAIN PROGRAM --target shape.png -o refined.txt
+    plad infer DOMAIN drawing.png shapes/ --beam 10 --out inferred/ [--effort fast|default|best | --no-refine]
+    plad refine DOMAIN PROGRAM --target shape.png -o refined.txt [--effort fast|default|best]
     plad search DOMAIN shape.npy [--effort fast|default|best] [--set insertions=8]
     plad models
     plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
@@ -231,9 +231,17 @@ def cmd_infer(args: argparse.Namespace) -> int:
     from plad.data.inputs import read_inputs
     from plad.device import default_device
     from plad.domains import get_domain
-    from plad.serve.infer import infer_items, new_run_dir, resolve_model
+    from plad.serve.infer import infer_items, new_run_dir, refinement, resolve_model
 
     domain = get_domain(args.domain)
+    if args.effort is not None and not args.refine:
+        raise UsageError(f"--effort {args.effort} sets the refinement, which --no-refine turns off: give one of them")
+    refine = None
+    if args.refine:
+        try:
+            refine = refinement(domain, args.effort or "default")
+        except ValueError as err:
+            raise UsageError(str(err)) from None
     beam = _beam(check_beam, args.beam)
     check_out_dir(args.out)
     items = read_inputs(args.inputs, tuple(domain.shape))
@@ -243,11 +251,6 @@ def cmd_infer(args: argparse.Namespace) -> int:
         for it in items:
             print(f"plad: error: {it.where}: {it.error}", file=sys.stderr)
         raise UsageError(f"none of the {len(items)} input shape(s) can be used; nothing was written")
-    refine = None
-    if args.refine:
-        from plad.rewrite import RefineConfig
-
-        refine = RefineConfig()
     model, source = resolve_model(args.domain, args.model, default_device())   # ModelError: exit status 1
     print(f"model: {source}", file=sys.stderr)
     try:
@@ -353,7 +356,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     from plad.rewrite import refine
     from plad.rewrite.evaluate import Scorer
 
-    domain, cfg = _search_setup(args.domain, args.set)
+    domain, cfg = _search_setup(args.domain, args.set, args.effort)
     out = check_output(args.output, (args.program, args.target))
     ids = domain.parse(_program_text(args.program))
     items = read_shapes(args.target, domain.shape)
@@ -548,9 +551,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="inferred",
                    help="output folder (default: ./inferred); each run writes into its own <time>-<pid>/ in it")
     p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=True,
-                   help="rewrite each best-of-beam program with the rewriters (PO, pruning, insertion) before "
-                        "writing it: never worse, often much better, slower (default); --no-refine: the "
-                        "network's beam alone")
+                   help="rewrite each best-of-beam program (--effort best: every beam candidate) with the "
+                        "rewriters (PO, pruning, insertion) before writing it: never worse, often much better, "
+                        "slower (default); --no-refine: the network's beam alone")
+    p.add_argument("--effort", default=None, metavar="LEVEL",
+                   help="how hard to refine: fast (the best-of-beam program, refined as `plad search --effort "
+                        "fast` refines), default (the best-of-beam program, up to 3 rounds) or best (every beam "
+                        "candidate refined as for default, the best kept: slower, never worse); docs/inference.md")
     p.set_defaults(func=cmd_infer)
 
     p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")
@@ -558,8 +565,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("--target", required=True, help="the target shape: .png or .npy, as for plad score")
     p.add_argument("-o", "--output", help="also write the refined program's text to this file")
+    p.add_argument("--effort", default=None, metavar="LEVEL",
+                   help="how hard to refine: fast, default or best, as `plad search` refines at that effort "
+                        "level (2D CSG: the same at every level, whose levels differ in their beam; "
+                        "docs/inference.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="search setting, e.g. refine.rounds=5 or refine.wide=false (repeatable)")
+                   help="search setting over the effort level's, e.g. refine.rounds=5 or refine.wide=false "
+                        "(repeatable)")
     p.set_defaults(func=cmd_refine)
 
     p = sub.add_parser("search", help="search for programs of shapes from scratch, without a network")

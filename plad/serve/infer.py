@@ -30,6 +30,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -44,6 +45,9 @@ from plad.model.checkpoint import CheckpointError, load_model
 from plad.model.decode import infer_programs
 from plad.model.network import PLADNet
 from plad.serve.resolve import ModelError, resolve
+
+if TYPE_CHECKING:  # pragma: no cover
+    from plad.rewrite import RefineConfig
 
 
 def resolve_model(domain: str, model: str | None, device: torch.device) -> tuple[PLADNet, str]:
@@ -111,16 +115,86 @@ def _wrap(text: str, width: int = 90) -> str:
     return "\n".join(text[i:i + width] for i in range(0, len(text), width))
 
 
+@dataclass(frozen=True)
+class Refinement:
+    """How the network's programs are refined before they are written: the rewriters' budget, and which of each
+    shape's beam candidates they start from."""
+
+    config: RefineConfig
+    #: refine every candidate of the shape's beam and keep the best refined one by the domain metric (else the
+    #: best-of-beam program only); never worse than refining the best-of-beam only, which is one of them
+    all_candidates: bool = False
+
+
+def refinement(domain: Domain, effort: str = "default") -> Refinement:
+    """The refinement of ``plad infer --effort LEVEL`` (:data:`plad.rewrite.EFFORTS`; a bad level: ValueError).
+
+    * ``fast``: the best-of-beam program, refined as the domain's fast search refines
+      (``search_config(domain, effort="fast").refine``; 2D CSG: one round; the domains that have not measured
+      their levels: no rounds, the network's beam alone);
+    * ``default``: the best-of-beam program, refined by :class:`~plad.rewrite.RefineConfig` ``()`` (3 rounds):
+      what ``plad infer`` did before the levels existed. Not ``search_config(domain).refine``, which is less
+      work (2D and 3D CSG: one round; ShapeAssembly also fewer, narrower PO sweeps and no insertion);
+    * ``best``: every candidate of the beam, each refined as for ``default``, the best kept per shape. Not
+      ``search_config(domain, effort="best").refine`` either: no domain's is more work than ``RefineConfig()``
+      (2D CSG: one round), so ``best`` would refine its best-of-beam program less than ``default`` does.
+    """
+    from plad.rewrite import EFFORTS, RefineConfig, search_config
+
+    if effort not in EFFORTS:
+        raise ValueError(f"effort = {effort!r}: expected one of {', '.join(EFFORTS)}")
+    if effort == "fast":
+        return Refinement(search_config(domain, effort="fast").refine)
+    return Refinement(RefineConfig(), all_candidates=effort == "best")
+
+
+def _refine(domain: Domain, inferred, targets: torch.Tensor,
+            how: Refinement) -> tuple[list[list[int]], torch.Tensor]:
+    """(refined programs, their values) per shape of one batch: ``inferred`` (:class:`plad.model.decode.Inferred`)
+    refined towards ``targets`` (B, *shape) on the CPU as ``how`` says."""
+    from plad.rewrite import refine as rewrite
+
+    starts, owner = [list(p) for p in inferred.programs], list(range(len(inferred.programs)))
+    if how.all_candidates:   # each shape's best-of-beam program first: ties keep its refinement
+        beam = inferred.beam
+        finite = torch.isfinite(beam.logp).cpu()
+        for b, best in enumerate(inferred.programs):
+            for k in range(beam.programs.shape[1]):
+                program = beam.program(b, k)
+                if bool(finite[b, k]) and program != best:   # an empty slot of the beam has no program
+                    starts.append(program)
+                    owner.append(b)
+    # one thread: the rewriters run many small tensor operations, which a second thread only slows
+    # (the four 2D examples, a busy 2-core machine: 2.2 s of CPU with one thread, 24 s with two)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:   # the whole batch at once: the rewriters batch every candidate of every shape
+        refined = rewrite(domain, starts, targets[owner], how.config)
+    finally:
+        torch.set_num_threads(threads)
+    programs, values = refined.programs[:len(targets)], refined.values[:len(targets)].clone()
+    better = domain.metric.better
+    for k in range(len(targets), len(starts)):
+        b = owner[k]
+        if bool(better(refined.values[k], values[b])):
+            programs[b], values[b] = refined.programs[k], refined.values[k]
+    return programs, values
+
+
 def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
-                batch_size: int = 16, progress: bool = True, refine=None) -> list[Result]:
+                batch_size: int = 16, progress: bool = True,
+                refine: Refinement | RefineConfig | None = None) -> list[Result]:
     """Best-of-beam programs for the good items, their output files, and ``results.csv``.
 
-    ``refine`` (a :class:`plad.rewrite.RefineConfig`, or None): rewrite each shape's best-of-beam program
-    with the rewriters before writing it (never worse; ``plad infer`` does unless ``--no-refine``). Shapes
-    are inferred and refined in batches (the rewriters batch every candidate of every shape: the four 2D
-    examples took 2.7 s of CPU so, 4.0 s one at a time); each result's ``seconds`` is its share of its batch's
-    time.
+    ``refine`` (a :class:`Refinement`, e.g. :func:`refinement` of an effort level; a
+    :class:`plad.rewrite.RefineConfig` means its best-of-beam refinement; None: none): rewrite each shape's
+    best-of-beam program, or each of its beam candidates, with the rewriters before writing it (never worse;
+    ``plad infer`` does unless ``--no-refine``). Shapes are inferred and refined in batches (the rewriters
+    batch every candidate of every shape: the four 2D examples took 2.7 s of CPU so, 4.0 s one at a time);
+    each result's ``seconds`` is its share of its batch's time.
     """
+    if refine is not None and not isinstance(refine, Refinement):
+        refine = Refinement(refine)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = next(model.parameters()).device
@@ -134,19 +208,10 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
             targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
             inferred = infer_programs(model, domain, targets, beam)
             programs, values, recons = inferred.programs, inferred.values.cpu(), inferred.shapes.cpu()
-            if refine is not None:   # the whole batch at once: the rewriters batch every candidate of every shape
-                from plad.rewrite import refine as rewrite
+            if refine is not None:
                 from plad.rewrite.evaluate import Scorer
 
-                # one thread: the rewriters run many small tensor operations, which a second thread only slows
-                # (the four 2D examples, a busy 2-core machine: 2.2 s of CPU with one thread, 24 s with two)
-                threads = torch.get_num_threads()
-                torch.set_num_threads(1)
-                try:
-                    refined = rewrite(domain, programs, targets.cpu(), refine)
-                finally:
-                    torch.set_num_threads(threads)
-                programs, values = refined.programs, refined.values
+                programs, values = _refine(domain, inferred, targets.cpu(), refine)
                 recons = Scorer(domain, targets.cpu()).outputs(programs)
             share = (time.perf_counter() - began) / len(chunk)
             for j, it in enumerate(chunk):

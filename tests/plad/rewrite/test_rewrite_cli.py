@@ -33,6 +33,26 @@ def test_refine_prints_the_program_first_and_the_metric_change_last(tmp_path):
     assert out.read_text().strip() == lines[0]
 
 
+def test_refine_takes_an_effort_level(tmp_path, capsys):
+    import torch
+
+    from plad.domains import get_domain
+    from plad.rewrite.evaluate import Scorer
+
+    target = tmp_path / "target.npy"
+    np.save(target, render("s(24,24,16)c(40,40,12)+$"))
+    out = tmp_path / "refined.txt"
+    assert main(["refine", "csg2d", "s(24,24,12)$", "--target", str(target), "-o", str(out), "--effort", "fast"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    name, before, arrow, after = lines[-1].split()
+    assert name == "chamfer" and arrow == "->" and float(after) < float(before)
+    # the reported value is the written program's, executed again
+    domain = get_domain("csg2d")
+    program = domain.parse(out.read_text().strip())
+    assert out.read_text().strip() == lines[0]
+    assert f"{float(Scorer(domain, torch.from_numpy(np.load(target)[None])).values([program])[0]):.6f}" == after
+
+
 def test_search_from_scratch_prints_program_and_metric(tmp_path, capsys):
     target = tmp_path / "two.npy"
     np.save(target, np.stack([render("s(24,24,16)c(40,40,12)+$"), render("c(32,32,16)$")]))
@@ -63,6 +83,10 @@ def test_bad_input_is_one_line(tmp_path, capsys):
         (("search", "csg2d", str(targets), "--set", "refine=3"), "refine = 3: expected a mapping of refine settings"),
         (("search", "csg2d", str(targets), "--effort", "quick"), "'quick': expected one of fast, default, best"),
         (("search", "csg2d", str(targets), "--effort", "fast", "--set", "effort=best"), "give the effort once"),
+        (("refine", "csg2d", "c(32,32,16)$", "--target", str(targets), "--effort", "quick"),
+         "'quick': expected one of fast, default, best"),
+        (("refine", "csg2d", "c(32,32,16)$", "--target", str(targets), "--effort", "fast", "--set", "effort=best"),
+         "give the effort once"),
     ]
     for args, message in cases:
         assert main(list(args)) == 2, args

@@ -13,6 +13,7 @@ from PIL import Image
 from plad.data.inputs import FIT_2D, fit_canvas, read_inputs, voxelize_mesh
 from plad.domains import get_domain
 from plad.serve.cli import main
+from tests.conftest import REPO_ROOT
 
 PROGRAM_2D = "c(32,32,16)s(40,40,12)-$"
 PROGRAM_3D = "union cuboid 12 10 16 10 8 12 ellipsoid 20 18 16 12 12 14"
@@ -161,6 +162,55 @@ def test_folder_with_bad_files_processes_the_others(registry, tmp_path, capsys):
     assert rows["broken"]["status"] == rows["blank"]["status"] == "error"
     assert (out / "good.svg").is_file() and not (out / "broken.txt").exists()
     assert "good.png: chamfer" in captured.out
+
+
+def test_refining_every_beam_candidate_is_never_worse_than_the_best_of_beam_only(tmp_path):
+    """--effort best against default on the shipped 2D model, a beam of 2 and one example drawing: best keeps
+    the best of the beam's candidates each refined on its own, never worse than default's; every value is the one
+    its written program scores when executed again."""
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_programs
+    from plad.rewrite import RefineConfig, refine, search_config
+    from plad.rewrite.evaluate import Scorer
+    from plad.serve.infer import Refinement, infer_items, refinement
+    from plad.shipped import shipped_model
+
+    domain = get_domain("csg2d")
+    assert refinement(domain) == Refinement(RefineConfig())          # default: what infer always did
+    assert refinement(domain, "best") == Refinement(RefineConfig(), all_candidates=True)
+    assert refinement(domain, "fast") == Refinement(search_config(domain, effort="fast").refine)
+    model = load_model(shipped_model("csg2d").checkpoint, torch.device("cpu"), expect_domain="csg2d")[0]
+    values = {}
+    for effort in ("default", "best"):
+        (item,) = read_inputs([str(REPO_ROOT / "examples" / "csg2d" / "house.png")], tuple(domain.shape))
+        out = tmp_path / effort
+        (result,) = infer_items(model, domain, [item], 2, out, progress=False, refine=refinement(domain, effort))
+        assert result.ok
+        program = domain.parse((out / "house.txt").read_text().strip())
+        target = torch.from_numpy(np.load(out / "house.input.npy")[None])
+        assert float(Scorer(domain, target).values([program])[0]) == result.value     # re-verified by execution
+        values[effort] = result.value
+    assert not domain.metric.better(torch.tensor(values["default"]), torch.tensor(values["best"]))
+    # best is the best of the candidates refined one by one
+    beam = infer_programs(model, domain, target, 2).beam
+    alone = [float(refine(domain, [beam.program(0, k)], target, RefineConfig()).values[0]) for k in range(2)]
+    assert values["best"] == domain.metric.best_value(alone)
+
+
+def test_infer_takes_an_effort_level_but_not_without_refinement(registry, tmp_path, capsys):
+    save_png(render_2d(PROGRAM_2D), tmp_path / "a.png")
+    for effort in ("best", "fast", "default"):
+        status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--no-refine", "--effort", effort,
+                       "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert status == 2 and len(err) == 1 and "--no-refine" in err[0], err
+    status = main(["infer", "csg2d", str(tmp_path / "a.png"), "--effort", "quick", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "'quick': expected one of fast, default, best" in err[0], err
+    assert not (tmp_path / "out").exists()                   # refused before any work
+    assert main(["infer", "csg2d", str(tmp_path / "a.png"), "--beam", "2", "--effort", "best",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert "1 of 1 shapes inferred and refined" in capsys.readouterr().err
 
 
 def test_infer_obj_mesh_with_a_checkpoint(checkpoints, tmp_path, capsys):
