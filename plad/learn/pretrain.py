@@ -334,7 +334,8 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
             "init": {"file": init_path.name, "sha256": sha256_file(init_path)} if init_path else None,
             "continue_lr": cfg.continue_lr if init_path else None,
             "synthetic": synthetic_record(layout, cfg.domain, len(train), fingerprint["synthetic_checksum"]),
-            "params": asdict(cfg)}
+            # a path `init` is this machine's: the segment names the checkpoint by `init` (file name, sha256)
+            "params": {**asdict(cfg), **({"init": init_path.name} if init_path and cfg.init != "shipped" else {})}}
 
     def provenance(state: dict) -> dict:
         s = LoopState.from_dict(state, "epoch")

@@ -83,6 +83,7 @@ def test_provenance_segments_add_up_and_travel_with_the_checkpoints(programs, tm
     assert tot["cpu_hours_complete"] is True
     assert all(s["threads"] == 1 and s["device"] == "cpu" and s["recorded"] for s in segs)
     assert segs[1]["init"]["file"] == LAST and segs[0]["init"] is None
+    assert segs[1]["params"]["init"] == LAST   # the file's name, not this machine's absolute path
     assert segs[0]["synthetic"]["seed"] == 3 and segs[0]["synthetic"]["train_programs"] == 200
     assert "real_val_chamfer" not in segs[1]["end"] and "prefix_gap" in segs[1]["end"]
     # best.pt (the model) and provenance.json say the same
