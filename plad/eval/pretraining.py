@@ -7,12 +7,17 @@ between segments is not) and draws one curve per run, one panel per domain::
     python -m plad.eval.pretraining -o docs/pretraining-hours.png \\
         "LABEL=runs/pretrain/DOMAIN/history.csv" ...
 
-The hours are those of the process: with one thread each, CPU hours.
+The hours are those of the process: with one thread each, CPU hours; a segment that ran on a GPU counts its
+own (far fewer) hours. ``--x shapes`` puts the synthetic shapes seen on the x axis instead, from the
+``provenance.json`` beside the history (its segments' epochs and shapes seen): the axis on which a CPU
+segment and a GPU segment of other batch sizes compare.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import json
+import math
 import sys
 from pathlib import Path
 
@@ -36,11 +41,45 @@ def curve(history: Path) -> dict[str, list[float]]:
         out["epoch"].append(float(row["epoch"]))
         for k in metrics:
             out.setdefault(k, []).append(float(row[k]) if row.get(k) not in (None, "") else float("nan"))
+    shapes = shapes_seen(history, out["epoch"])
+    if shapes is not None:
+        out["shapes"] = shapes
     return out
 
 
-def plot(runs: dict[str, Path], out: Path, metric: str = "real_val_iou") -> None:
-    """One panel per metric family (real validation, synthetic validation), one line per run."""
+def shapes_seen(history: Path, epochs: list[float]) -> list[float] | None:
+    """Cumulative synthetic shapes seen (millions) at the end of each epoch, from the segments of the
+    ``provenance.json`` beside ``history`` (a segment's shapes spread evenly over its epochs); None where there
+    is no such file. An epoch no segment covers is NaN."""
+    path = history.parent / "provenance.json"
+    if not path.exists():
+        return None
+    try:
+        segments = json.loads(path.read_text())["segments"]
+        per_epoch = {}
+        for seg in segments:
+            first, last = seg["epochs"]
+            for e in range(first, last + 1):
+                per_epoch[e] = seg["shapes_seen"] / (last - first + 1)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{path}: not a pretraining provenance ({err})") from None
+    total, out = 0.0, []
+    for e in epochs:
+        if int(e) not in per_epoch:
+            out.append(math.nan)
+            continue
+        total += per_epoch[int(e)]
+        out.append(total / 1e6)
+    return out
+
+
+X_LABELS = {"hours": "training hours (one CPU thread; a GPU segment its own hours)",
+            "shapes": "synthetic shapes seen (millions)"}
+
+
+def plot(runs: dict[str, Path], out: Path, metric: str = "real_val_iou", x: str = "hours") -> None:
+    """One panel per metric family (real validation, synthetic validation), one line per run, against
+    ``x``: ``hours`` or ``shapes`` (every run needs its ``provenance.json`` for that)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -49,14 +88,16 @@ def plot(runs: dict[str, Path], out: Path, metric: str = "real_val_iou") -> None
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for label, path in runs.items():
         c = curve(path)
+        if x not in c:
+            raise ValueError(f"{path}: no provenance.json beside it, so no shapes seen to plot against")
         synthetic = metric.replace("real_val_", "val_")
         if metric in c:
-            axes[0].plot(c["hours"], c[metric], label=label)
+            axes[0].plot(c[x], c[metric], label=label)
         if synthetic in c:
-            axes[1].plot(c["hours"], c[synthetic], label=label)
+            axes[1].plot(c[x], c[synthetic], label=label)
     for ax, title in zip(axes, (f"{metric} (greedy, real validation shapes)",
                                 f"{metric.replace('real_val_', 'val_')} (greedy, synthetic validation programs)")):
-        ax.set_xlabel("training hours (one thread)")
+        ax.set_xlabel(X_LABELS[x])
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
@@ -70,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", nargs="+", help="LABEL=PATH of a history.csv")
     parser.add_argument("-o", "--out", required=True, type=Path, help="the PNG to write")
     parser.add_argument("--metric", default="real_val_iou", help="the real-validation column (default real_val_iou)")
+    parser.add_argument("--x", choices=sorted(X_LABELS), default="hours",
+                        help="the x axis: training hours (default) or synthetic shapes seen (needs provenance.json)")
     args = parser.parse_args(argv)
     runs = {}
     for item in args.runs:
@@ -78,12 +121,13 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{item!r}: expected LABEL=PATH")
         runs[label] = Path(path)
     try:
-        plot(runs, args.out, args.metric)
+        plot(runs, args.out, args.metric, args.x)
         for label, path in runs.items():
             c = curve(path)
             values = c.get(args.metric, [float("nan")] * len(c["epoch"]))
             best = max(range(len(values)), key=lambda i: values[i] if values[i] == values[i] else -1e9)
-            print(f"{label}: {len(values)} epochs, {c['hours'][-1]:.2f} h; best {args.metric} {values[best]:.4f} "
+            seen = f", {c['shapes'][-1]:.2f} M shapes" if "shapes" in c else ""
+            print(f"{label}: {len(values)} epochs, {c['hours'][-1]:.2f} h{seen}; best {args.metric} {values[best]:.4f} "
                   f"at epoch {c['epoch'][best]:.0f} ({c['hours'][best]:.2f} h)")
     except ValueError as err:
         print(f"plad.eval.pretraining: error: {err}", file=sys.stderr)

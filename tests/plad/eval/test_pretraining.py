@@ -34,3 +34,23 @@ def test_a_file_that_is_no_history_is_one_line(tmp_path, capsys):
     assert capsys.readouterr().err.strip().endswith("not a pretraining history (no epoch_seconds column)")
     with pytest.raises(ValueError, match="cannot read"):
         curve(tmp_path / "missing.csv")
+
+
+def test_shapes_seen_spreads_each_segments_shapes_over_its_epochs(tmp_path, capsys):
+    h = write(tmp_path / "h.csv", [(1, 0.1, 0.05, 1800), (2, 0.2, 0.1, 1800), (3, 0.3, 0.2, 10), (4, 0.4, 0.3, 10)])
+    # a CPU segment of 2 epochs and 0.2 M shapes, then a GPU segment of 2 epochs and 3 M shapes
+    (tmp_path / "provenance.json").write_text(
+        '{"segments": [{"epochs": [1, 2], "shapes_seen": 200000}, {"epochs": [3, 4], "shapes_seen": 3000000}]}')
+    c = curve(h)
+    assert c["shapes"] == pytest.approx([0.1, 0.2, 1.7, 3.2])
+    assert main(["-o", str(tmp_path / "out.png"), "--x", "shapes", f"r={h}"]) == 0
+    assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert capsys.readouterr().out == ("r: 4 epochs, 1.01 h, 3.20 M shapes; best real_val_iou 0.3000 at epoch 4 "
+                                       "(1.01 h)\n")
+
+
+def test_shapes_axis_without_provenance_is_one_line(tmp_path, capsys):
+    h = write(tmp_path / "h.csv", [(1, 0.1, 0.05, 1800)])
+    assert main(["-o", str(tmp_path / "out.png"), "--x", "shapes", f"r={h}"]) == 1
+    assert "no provenance.json beside it" in capsys.readouterr().err
+    assert not (tmp_path / "out.png").exists()
