@@ -266,6 +266,14 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                 key, val = entry["champion"]["method"], entry["champion"]["val"]
                 name = f"plad-{d}"
                 metric = get_domain(d).metric
+                checkpoint = ctx.layout.model(d, key)
+                if not checkpoint.exists():
+                    # a column rebuilt on this machine beside others whose results are committed but whose
+                    # checkpoints (uncommitted run outputs) were made elsewhere: report them, register nothing
+                    entry["champion"]["registered"] = False
+                    print(f"report: plad-{d}: its best model, {key}, has no checkpoint here ({checkpoint}); "
+                          f"nothing registered", file=sys.stderr)
+                    continue
                 current = champion_tags(name)
                 held = _recorded_val(current)
                 if held is not None and not metric.better(val, held):
@@ -273,7 +281,7 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                     print(f"report: kept {name}@champion (version {current[0]}, validation {metric.name} {held:.6g}):"
                           f" the best here, {key} with {val:.6g}, does not beat it", file=sys.stderr)
                     continue
-                version = run.log_model(ctx.layout.model(d, key), registered_name=name).rsplit("/", 1)[-1]
+                version = run.log_model(checkpoint, registered_name=name).rsplit("/", 1)[-1]
                 set_version_tags(name, version, {"plad.method": key, "plad.test": entry["test"].get(key),
                                                  "plad.val": repr(float(val)), "plad.metric": metric.name})
                 set_champion(name, version)

@@ -133,3 +133,25 @@ def test_a_missing_experiment_is_a_one_line_error(tmp_path, monkeypatch, capsys)
     assert main(["--params", str(params), "--set", "source=mlflow", "--root", str(tmp_path)]) == 1
     err = [line for line in capsys.readouterr().err.splitlines() if "mlflow.store.db" not in line]
     assert err == ["report: error: MLflow: no test evaluation for csg2d/sp"]
+
+
+def test_a_champion_without_its_checkpoint_here_is_reported_not_registered(pipeline, capsys):
+    """Rebuilding one domain's column on a machine where the others' checkpoints were never made: the report is
+    written, and a domain whose best model has no checkpoint here registers nothing (it used to stop the stage
+    with FileNotFoundError)."""
+    import json
+
+    root, _ = pipeline
+    ws = Layout(root).model("csg2d", "ws")
+    assert _report(pipeline) == 0   # registers nothing; the store is set up as for the other tests
+    count = len(_versions())
+    ws.rename(ws.with_suffix(".away"))
+    try:
+        assert _report(pipeline, "--register") == 0
+    finally:
+        ws.with_suffix(".away").rename(ws)
+    assert f"report: {NAME}: its best model, ws, has no checkpoint here ({ws}); nothing registered" in \
+        capsys.readouterr().err
+    assert len(_versions()) == count
+    report = json.loads((Layout(root).results_dir / "report.json").read_text())
+    assert report["domains"]["csg2d"]["champion"]["registered"] is False
