@@ -163,6 +163,9 @@ class NumberRecord:
     #: files behind the number that recorded their wall seconds, of how many
     timed_files: int = 0
     files: int = 0
+    #: each file's wall seconds (None: not recorded), so that a column counts a file that several of its
+    #: numbers share (a training's summary behind its beam sweep and its refined evaluation) once
+    walls: dict[str, float | None] = field(default_factory=dict)
     #: a wall-clock limit shaped the number; None: no file says (written before the flag existed)
     stopped_by_time: bool | None = None
 
@@ -214,9 +217,16 @@ def number_record(domain: str, key: str, layout: Layout) -> NumberRecord:
         rec.commits.append((str(path), prov.get("commit")))
         rec.dirty |= bool(prov.get("dirty"))
         wall = prov.get("wall_seconds")
+        rec.walls[str(path)] = None
         if wall is not None:
-            # a training resumed after a kill: the last call's wall seconds, its loop's time across resumes
-            rec.wall_seconds += max(float(wall), float(data.get("train_seconds") or 0.0))
+            seconds = float(wall)
+            if (data.get("totals") or {}).get("segments", 1) <= 1:
+                # a training resumed after a kill: the last call's wall seconds, its loop's time across resumes.
+                # Not for a pretraining that continues earlier segments: its train_seconds holds theirs too,
+                # which this column did not spend (a resumed continuation counts its last call)
+                seconds = max(seconds, float(data.get("train_seconds") or 0.0))
+            rec.wall_seconds += seconds
+            rec.walls[str(path)] = seconds
             rec.timed_files += 1
         flags.append(_timed(data))
     known = [f for f in flags if f is not None]
@@ -266,9 +276,10 @@ def column(domain: str, keys: list[str], layout: Layout) -> Column:
         if differ and main is not None:
             others[k] = differ
     dirty = any(r.dirty for r in records.values() if any(c == main for _, c in r.commits))
-    wall = sum(r.wall_seconds for r in records.values())
-    timed_files = sum(r.timed_files for r in records.values())
-    files = sum(r.files for r in records.values())
+    walls = {path: w for r in records.values() for path, w in r.walls.items()}   # each file once
+    wall = sum(w for w in walls.values() if w is not None)
+    timed_files = sum(w is not None for w in walls.values())
+    files = len(walls)
     return Column(domain, main, dirty, others, wall, timed_files, files,
                   [k for k, r in records.items() if r.stopped_by_time],
                   [k for k, r in records.items() if r.stopped_by_time is None], records)

@@ -100,3 +100,28 @@ def test_a_column_of_one_commit_marks_nothing(tmp_path):
     section = columns_markdown({"csg3d": col})
     assert "| commit | ccccccc (dirty) |" in section
     assert "| stop | work (every run ended on its epochs, rounds or patience) |" in section
+
+
+def test_a_column_counts_each_file_once_and_a_continued_pretraining_its_own_call(tmp_path):
+    """The search-seeded training's summary stands behind its evaluation, its refined evaluation and its beam
+    sweep: counted once. A pretraining that continued a shipped checkpoint (4 segments) has train_seconds of
+    all of them (5.7 h here): the column counts the call's own wall seconds."""
+    from plad.eval.report import column
+    from plad.layout import Layout
+
+    layout = Layout(tmp_path)
+    c = "c" * 40
+    _write(layout.pretrain_dir("csg3d") / "summary.json",
+           {"stopped": "max_epochs", "stopped_by_time": False, "train_seconds": 20650.9,
+            "totals": {"segments": 4, "train_seconds": 20650.9}, "provenance": _prov(c, 12.0)})
+    _write(layout.finetune_summary("csg3d", "lest_st_ws_search"),
+           {"units": 38, "stopped": "max_rounds", "stopped_by_time": False, "train_seconds": 4200.0,
+            "provenance": _prov(c, 4250.0)})
+    keys = ["sp", "lest_st_ws_search", "lest_st_ws_search_refined", "lest_st_ws_search_beam1"]
+    for key in keys:
+        _write(layout.eval_dir(key, "csg3d") / "metrics.json",
+               {"test": {"mean": 0.5, "n": 3}, "stopped_by_time": False, "provenance": _prov(c, 10.0)})
+    col = column("csg3d", keys, layout)
+    # 12 + 4250 + 4 evaluations of 10 s; 6 files, each once
+    assert col.wall_seconds == 4302.0 and (col.timed_files, col.files) == (6, 6)
+    assert col.records["lest_st_ws_search_beam1"].wall_seconds == 4260.0   # a number's own files, as before
