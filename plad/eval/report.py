@@ -158,16 +158,25 @@ class NumberRecord:
     #: (file, commit or None) of every file behind the number that exists
     commits: list[tuple[str, str | None]] = field(default_factory=list)
     dirty: bool = False
-    #: wall seconds of the stages behind the number (a training counts its time across resumes)
-    wall_seconds: float = 0.0
-    #: files behind the number that recorded their wall seconds, of how many
-    timed_files: int = 0
-    files: int = 0
-    #: each file's wall seconds (None: not recorded), so that a column counts a file that several of its
-    #: numbers share (a training's summary behind its beam sweep and its refined evaluation) once
+    #: wall seconds of each file behind the number (None: not recorded; a training counts its time across
+    #: resumes), by path, so that a column counts a file several of its numbers share (a training's summary
+    #: behind its beam sweep and its refined evaluation) once
     walls: dict[str, float | None] = field(default_factory=dict)
     #: a wall-clock limit shaped the number; None: no file says (written before the flag existed)
     stopped_by_time: bool | None = None
+
+    @property
+    def wall_seconds(self) -> float:
+        return sum(w for w in self.walls.values() if w is not None)
+
+    @property
+    def timed_files(self) -> int:
+        """Files behind the number that recorded their wall seconds (of :attr:`files`)."""
+        return sum(w is not None for w in self.walls.values())
+
+    @property
+    def files(self) -> int:
+        return len(self.walls)
 
 
 def _training_summary(domain: str, key: str, layout: Layout) -> Path | None:
@@ -212,7 +221,6 @@ def number_record(domain: str, key: str, layout: Layout) -> NumberRecord:
         data = _read_json(path)
         if data is None:
             continue
-        rec.files += 1
         prov = data.get("provenance") or {}
         rec.commits.append((str(path), prov.get("commit")))
         rec.dirty |= bool(prov.get("dirty"))
@@ -225,9 +233,7 @@ def number_record(domain: str, key: str, layout: Layout) -> NumberRecord:
                 # Not for a pretraining that continues earlier segments: its train_seconds holds theirs too,
                 # which this column did not spend (a resumed continuation counts its last call)
                 seconds = max(seconds, float(data.get("train_seconds") or 0.0))
-            rec.wall_seconds += seconds
             rec.walls[str(path)] = seconds
-            rec.timed_files += 1
         flags.append(_timed(data))
     known = [f for f in flags if f is not None]
     rec.stopped_by_time = any(known) if known else None
