@@ -28,6 +28,7 @@ from plad.rewrite.evaluate import Scorer, Stats, improves
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import TOLERANCE, prune
+from plad.rewrite.swap import swap
 
 if TYPE_CHECKING:  # pragma: no cover
     from plad.domains.base import Domain
@@ -48,6 +49,9 @@ class RefineConfig:
     insert: bool = True
     #: PO sweeps over the inserted primitive's own block after an insertion
     tune_sweeps: int = 10
+    #: try one swap per round after the insertion (:mod:`plad.rewrite.swap`: remove a primitive, insert the
+    #: best new one, tune it by ``tune_sweeps``); what helps where the length cap stops insertion
+    swap: bool = False
     #: seconds for one batch of shapes (no new step starts after it); null: no limit. A safety net: the work is
     #: fixed by the counts above, and a result the limit cut short says so (:attr:`Result.stopped_by_time`)
     time_limit: float | None = None
@@ -154,6 +158,8 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
             programs, values = prune(scorer, programs, values, TOLERANCE)
         if cfg.insert and (deadline is None or time.perf_counter() <= deadline):   # no new step after the limit
             programs, values, _ = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False, deadline=deadline)
+        if cfg.swap and (deadline is None or time.perf_counter() <= deadline):
+            programs, values, _ = swap(scorer, programs, values, cfg.tune_sweeps, deadline=deadline)
         if programs == before:
             break
     return programs, values

@@ -62,6 +62,12 @@ class CSG3DRewrite(RewriteSpace):
     # moves), then one round of refinement: on 100 PartNet test shapes IoU 0.874 after the greedy
     # phase, 0.884 after refinement
     search_defaults = {"insertions": 12, "tune_sweeps": 60, "refine": {"rounds": 1}}
+    # effort levels (50 evenly spaced PartNet test shapes, one thread, CPU s per shape): fast skips the
+    # refinement; default is the search above (0.953, 0.19 s); best refines for up to 3 rounds with a swap in
+    # each (plad.rewrite.swap: 0.957, 0.52 s; the 3 rounds alone 0.953, 0.27 s). Most of the loss is the
+    # 12-primitive cap: the same search allowed 24 primitives reaches 0.985 (docs/inference.md)
+    search_efforts = {"fast": {"refine": {"rounds": 0}}, "default": {},
+                      "best": {"refine": {"rounds": 3, "swap": True}}}
 
     def __init__(self, domain):
         super().__init__(domain)

@@ -12,6 +12,7 @@ from plad.rewrite.evaluate import Scorer, oriented
 from plad.rewrite.insert import insert
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import prune
+from plad.rewrite.swap import removals, swap
 from tests.conftest import REPO_ROOT
 
 # programs per domain for the property tests (ShapeAssembly executes ~2 ms per program in Python)
@@ -56,11 +57,15 @@ def test_no_rewrite_makes_a_program_worse(name):
         "po": lambda p, v: optimize(scorer, p, v, sweeps=1, wide=False),
         "prune": lambda p, v: prune(scorer, p, v),
         "insert": lambda p, v: insert(scorer, p, v)[:2],
+        "swap": lambda p, v: swap(scorer, p, v, sweeps=2)[:2],
     }
     for step in steps.values():
         new, new_values = step(programs, values)
         _assert_not_worse(domain, programs, values, new, new_values, targets)
     result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1))
+    _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
+    result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
+                                                            swap=True))
     _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
 
 
@@ -160,6 +165,25 @@ def test_insertion_improves_an_empty_or_one_primitive_start(name):
         result = search(domain, target[:1], search_config(domain, insertions=2, **{"refine.rounds": 0}))
         perfect = 0.0 if not hib else 1.0
         assert float(result.values[0]) == perfect
+
+
+def test_swap_replaces_a_wrong_primitive_at_the_same_length():
+    """Target: two boxes; program: one of them and a wrong box. Insertion would add the missing box beside the
+    wrong one; a swap removes the wrong one and inserts the missing one in its place."""
+    domain = get_domain("csg3d")
+    a, b = "cuboid 8 8 8 7 7 7", "cuboid 22 22 22 9 9 9"
+    target = _execute(domain, [domain.parse(f"union {a} {b}")])
+    program = domain.parse(f"union {a} cuboid 22 6 26 5 5 5")
+    assert [domain.format(p) for p in removals(domain.rewrite, program)] == ["cuboid 22 6 26 5 5 5", a]
+    scorer = Scorer(domain, target)
+    values = scorer.values([program])
+    new, new_values, swapped = swap(scorer, [program], values, sweeps=10)
+    assert swapped.tolist() == [True]
+    assert float(new_values[0]) == 1.0 and len(new[0]) == len(program)
+    assert torch.equal(domain.metric(_execute(domain, new), target), new_values)
+    # nothing left to swap: the exact program stays as it is
+    again, again_values, swapped = swap(scorer, new, new_values, sweeps=10)
+    assert swapped.tolist() == [False] and again == new
 
 
 def test_rewriters_are_generic():
