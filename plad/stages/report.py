@@ -277,7 +277,9 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                 current = champion_tags(name)
                 held = _recorded_val(current)
                 if held is not None and not metric.better(val, held):
-                    entry["champion"]["registered"] = False
+                    # the store's champion stays: say which one it is, so report.json still names the model
+                    entry["champion"].update(registered=False, held={
+                        "model": f"models:/{name}@champion", "version": str(current[0]), "val": held})
                     print(f"report: kept {name}@champion (version {current[0]}, validation {metric.name} {held:.6g}):"
                           f" the best here, {key} with {val:.6g}, does not beat it", file=sys.stderr)
                     continue

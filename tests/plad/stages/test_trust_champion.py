@@ -1,6 +1,8 @@
 """The champion alias only moves to a better model; a rebuilt report registers only when asked (issue 18)."""
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -109,6 +111,10 @@ def test_champion_moves_only_to_a_better_best_validation(pipeline, capsys):
     err = capsys.readouterr().err
     assert f"kept {NAME}@champion (version {first.version}, validation chamfer 3.9)" in err
     assert len(_versions()) == count
+    root, _ = pipeline
+    champion = json.loads((Layout(root).results_dir / "report.json").read_text())["domains"]["csg2d"]["champion"]
+    assert champion["registered"] is False
+    assert champion["held"] == {"model": f"models:/{NAME}@champion", "version": str(first.version), "val": 3.9}
     assert client.get_model_version_by_alias(NAME, "champion").version == first.version
     # a worse champion (5.0): replaced by the new version
     set_version_tags(NAME, first.version, {"plad.val": "5.0"})
