@@ -167,16 +167,22 @@ class NumberRecord:
 
     @property
     def wall_seconds(self) -> float:
-        return sum(w for w in self.walls.values() if w is not None)
+        return wall_totals(self.walls)[0]
 
     @property
     def timed_files(self) -> int:
         """Files behind the number that recorded their wall seconds (of :attr:`files`)."""
-        return sum(w is not None for w in self.walls.values())
+        return wall_totals(self.walls)[1]
 
     @property
     def files(self) -> int:
         return len(self.walls)
+
+
+def wall_totals(walls: dict[str, float | None]) -> tuple[float, int, int]:
+    """(wall seconds summed, files that recorded them, files) of per-file wall seconds (None: not recorded)."""
+    timed = [w for w in walls.values() if w is not None]
+    return sum(timed), len(timed), len(walls)
 
 
 def _training_summary(domain: str, key: str, layout: Layout) -> Path | None:
@@ -282,10 +288,8 @@ def column(domain: str, keys: list[str], layout: Layout) -> Column:
         if differ and main is not None:
             others[k] = differ
     dirty = any(r.dirty for r in records.values() if any(c == main for _, c in r.commits))
-    walls = {path: w for r in records.values() for path, w in r.walls.items()}   # each file once
-    wall = sum(w for w in walls.values() if w is not None)
-    timed_files = sum(w is not None for w in walls.values())
-    files = len(walls)
+    # each file once: a training's summary is behind several numbers of its column
+    wall, timed_files, files = wall_totals({path: w for r in records.values() for path, w in r.walls.items()})
     return Column(domain, main, dirty, others, wall, timed_files, files,
                   [k for k, r in records.items() if r.stopped_by_time],
                   [k for k, r in records.items() if r.stopped_by_time is None], records)

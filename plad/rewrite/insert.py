@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from plad.domains.space import Candidates
 from plad.rewrite.evaluate import Scorer, improves
 from plad.rewrite.po import optimize
 
@@ -35,6 +36,19 @@ def insert(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, only
     if not len(cands):
         return programs, values, inserted
     cands.owner = torch.as_tensor(rows, dtype=torch.long)[cands.owner]   # back to indices of ``programs``
+    programs, values, inserted = take_best(scorer, programs, values, cands, force)
+    if not force:
+        scorer.stats.accepted("insert", int(inserted.sum()))
+    return programs, values, inserted
+
+
+def take_best(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cands: Candidates,
+              force: bool = False) -> tuple[list[list[int]], torch.Tensor, torch.Tensor]:
+    """Each program's best candidate (``cands.owner`` indexes ``programs``), taken if it improves the program
+    (``force``: whenever there is one). Returns (programs, values, taken (B,) bool); counts nothing."""
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    taken = torch.zeros(len(programs), dtype=torch.bool)
     best, best_values = scorer.best(cands, len(programs))
     lengths = torch.tensor([len(p) for p in programs])
     has = best >= 0
@@ -43,10 +57,24 @@ def insert(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, only
     for i in torch.nonzero(ok).flatten().tolist():
         programs[i] = cands.row(int(best[i]))
         values[i] = best_values[i]
-    inserted[ok] = True
-    if not force:
-        scorer.stats.accepted("insert", int(ok.sum()))
-    return programs, values, inserted
+    taken[ok] = True
+    return programs, values, taken
+
+
+def keep_tuned(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, new: list[list[int]],
+               new_values: torch.Tensor, tried: torch.Tensor, sweeps: int, wide: bool,
+               deadline: float | None = None) -> tuple[list[list[int]], torch.Tensor, torch.Tensor]:
+    """Tune the ``tried`` programs of ``new`` by PO over their last block (``sweeps`` 0: as they are), then keep
+    each one that beats its program in ``programs``. Returns (programs, values, kept (B,) bool)."""
+    rows = torch.nonzero(tried).flatten().tolist()
+    if sweeps > 0:
+        new, new_values = optimize(scorer, new, new_values, sweeps=sweeps, wide=wide, last_only=True, only=rows,
+                                   deadline=deadline)
+    lengths = torch.tensor([len(p) for p in programs])
+    new_lengths = torch.tensor([len(p) for p in new])
+    ok = tried & improves(new_values, new_lengths, values, lengths, scorer.higher_is_better)
+    out = [new[i] if ok[i] else list(programs[i]) for i in range(len(programs))]
+    return out, torch.where(ok, new_values, values), ok
 
 
 def insert_tuned(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps: int, wide: bool,
@@ -62,12 +90,6 @@ def insert_tuned(scorer: Scorer, programs: list[list[int]], values: torch.Tensor
     if sweeps <= 0:
         return insert(scorer, programs, values, only)
     new, new_values, tried = insert(scorer, programs, values, only, force=True)
-    rows = torch.nonzero(tried).flatten().tolist()
-    new, new_values = optimize(scorer, new, new_values, sweeps=sweeps, wide=wide, last_only=True, only=rows,
-                               deadline=deadline)
-    lengths = torch.tensor([len(p) for p in programs])
-    new_lengths = torch.tensor([len(p) for p in new])
-    ok = tried & improves(new_values, new_lengths, values, lengths, scorer.higher_is_better)
-    out = [new[i] if ok[i] else list(programs[i]) for i in range(len(programs))]
+    out, out_values, ok = keep_tuned(scorer, programs, values, new, new_values, tried, sweeps, wide, deadline)
     scorer.stats.accepted("insert", int(ok.sum()))
-    return out, torch.where(ok, new_values, values), ok
+    return out, out_values, ok

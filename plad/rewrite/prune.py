@@ -46,6 +46,18 @@ def _accept(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, pro
     return int(ok.sum())
 
 
+def without(space, program: Sequence[int], nodes: list[Node], n: int) -> list[int] | None:
+    """The program without node ``n``: its parent replaced by its only sibling; None for the root or a parent
+    with more than two operands."""
+    if nodes[n].parent < 0:
+        return None
+    parent = nodes[nodes[n].parent]
+    siblings = [c for c in parent.children if c != n]
+    if len(siblings) != 1:
+        return None
+    return space.splice(program, parent, space.standalone(program, nodes[siblings[0]]))
+
+
 def _bottom_up_splice(space, program: Sequence[int], nodes: list[Node], outputs: torch.Tensor) -> list[int] | None:
     """The first applicable bottom-up splice (children before parents), or None."""
     flat = outputs.reshape(len(nodes), -1)
@@ -55,11 +67,10 @@ def _bottom_up_splice(space, program: Sequence[int], nodes: list[Node], outputs:
             for c in node.children:
                 if torch.equal(flat[n], flat[c]):
                     return space.splice(program, node, space.standalone(program, nodes[c]))
-        if bool(empty[n]) and node.parent >= 0:
-            parent = nodes[node.parent]
-            siblings = [c for c in parent.children if c != n]
-            if len(siblings) == 1:
-                return space.splice(program, parent, space.standalone(program, nodes[siblings[0]]))
+        if bool(empty[n]):
+            shorter = without(space, program, nodes, n)
+            if shorter is not None:
+                return shorter
     return None
 
 

@@ -19,8 +19,9 @@ from collections.abc import Sequence
 
 import torch
 
-from plad.rewrite.evaluate import Scorer, improves
-from plad.rewrite.po import optimize
+from plad.rewrite.evaluate import Scorer
+from plad.rewrite.insert import keep_tuned, take_best
+from plad.rewrite.prune import without
 
 
 def removals(space, program: Sequence[int]) -> list[list[int]]:
@@ -28,15 +29,8 @@ def removals(space, program: Sequence[int]) -> list[list[int]]:
     if not program:
         return []
     nodes = space.nodes(program)
-    out = []
-    for n, node in enumerate(nodes):
-        if node.boolean or node.parent < 0:
-            continue
-        parent = nodes[node.parent]
-        siblings = [c for c in parent.children if c != n]
-        if len(siblings) == 1:
-            out.append(space.splice(program, parent, space.standalone(program, nodes[siblings[0]])))
-    return out
+    shorter = (without(space, program, nodes, n) for n, node in enumerate(nodes) if not node.boolean)
+    return [p for p in shorter if p is not None]
 
 
 def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps: int, wide: bool = False,
@@ -49,44 +43,22 @@ def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps
     """
     programs = [list(p) for p in programs]
     values = values.clone()
-    swapped = torch.zeros(len(programs), dtype=torch.bool)
     rows = list(range(len(programs))) if only is None else list(only)
-    space = scorer.space
     shorter, owner = [], []
     for i in rows:
-        for p in removals(space, programs[i]):
+        for p in removals(scorer.space, programs[i]):
             shorter.append(p)
             owner.append(i)
     if not shorter or (deadline is not None and time.perf_counter() > deadline):
-        return programs, values, swapped
+        return programs, values, torch.zeros(len(programs), dtype=torch.bool)
     owner_t = torch.tensor(owner, dtype=torch.long)
-    outputs = scorer.outputs(shorter)
-    cands = space.insertions(shorter, outputs, scorer.targets[owner_t])
+    cands = scorer.space.insertions(shorter, scorer.outputs(shorter), scorer.targets[owner_t])
     if not len(cands):
-        return programs, values, swapped
+        return programs, values, torch.zeros(len(programs), dtype=torch.bool)
     cands.owner = owner_t[cands.owner]                       # back to indices of ``programs``
-    best, best_values = scorer.best(cands, len(programs))
-    tried = [i for i in rows if int(best[i]) >= 0]
-    if not tried:
-        return programs, values, swapped
-    new = [list(p) for p in programs]
-    new_values = values.clone()
-    for i in tried:
-        new[i] = cands.row(int(best[i]))
-        new_values[i] = best_values[i]
-    if sweeps > 0:
-        new, new_values = optimize(scorer, new, new_values, sweeps=sweeps, wide=wide, last_only=True, only=tried,
-                                   deadline=deadline)
-    lengths = torch.tensor([len(p) for p in programs])
-    new_lengths = torch.tensor([len(p) for p in new])
-    ok = torch.zeros(len(programs), dtype=torch.bool)
-    ok[tried] = True
-    ok &= improves(new_values, new_lengths, values, lengths, scorer.higher_is_better)
-    for i in torch.nonzero(ok).flatten().tolist():
-        programs[i] = new[i]
-        values[i] = new_values[i]
-    swapped[ok] = True
-    scorer.stats.accepted("swap", int(ok.sum()))
+    new, new_values, tried = take_best(scorer, programs, values, cands, force=True)
+    programs, values, swapped = keep_tuned(scorer, programs, values, new, new_values, tried, sweeps, wide, deadline)
+    scorer.stats.accepted("swap", int(swapped.sum()))
     return programs, values, swapped
 
 

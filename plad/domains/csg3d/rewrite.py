@@ -66,8 +66,7 @@ class CSG3DRewrite(RewriteSpace):
     # refinement; default is the search above (0.953, 0.19 s); best refines for up to 3 rounds with a swap in
     # each (plad.rewrite.swap: 0.957, 0.52 s; the 3 rounds alone 0.953, 0.27 s). Most of the loss is the
     # 12-primitive cap: the same search allowed 24 primitives reaches 0.985 (docs/inference.md)
-    search_efforts = {"fast": {"refine": {"rounds": 0}}, "default": {},
-                      "best": {"refine": {"rounds": 3, "swap": True}}}
+    search_efforts = {**RewriteSpace.search_efforts, "best": {"refine": {"rounds": 3, "swap": True}}}
 
     def __init__(self, domain):
         super().__init__(domain)

@@ -59,8 +59,7 @@ class ShapeAssemblyRewrite(RewriteSpace):
     # programs, its 2 best finds refined (0.953, 0.74 s; a beam of 2, 1 refined: 0.947, 0.35 s; the greedy
     # search with 3 rounds of wide PO and insertion: 0.895, 0.82 s). The default stays greedy: the search-seeded
     # fine-tuning seeds with it, and the committed column was trained on its programs
-    search_efforts = {"fast": {"refine": {"rounds": 0}}, "default": {},
-                      "best": {"beam_width": 4, "beam_refine": 2}}
+    search_efforts = {**RewriteSpace.search_efforts, "best": {"beam_width": 4, "beam_refine": 2}}
 
     def __init__(self, domain):
         super().__init__(domain)
