@@ -45,8 +45,11 @@ class RefineConfig:
     #: PO uses the domain's large choice sets (e.g. every draw token), else local neighbours only
     wide: bool = True
     prune: bool = True
-    #: try one insertion per round (then tune the inserted primitive)
+    #: try insertions each round (each tunes the inserted primitive, then keeps it only if that improves)
     insert: bool = True
+    #: insertions per round, one after another; a program stops growing at the first that does not improve it.
+    #: More than 1 lets a refinement add the parts a network's program lacks (ShapeAssembly) in one round
+    insertions: int = 1
     #: PO sweeps over the inserted primitive's own block after an insertion
     tune_sweeps: int = 10
     #: try one swap per round after the insertion (:mod:`plad.rewrite.swap`: remove a primitive, insert the
@@ -156,8 +159,14 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
         programs, values = optimize(scorer, programs, values, sweeps=cfg.po_sweeps, wide=cfg.wide, deadline=deadline)
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
-        if cfg.insert and (deadline is None or time.perf_counter() <= deadline):   # no new step after the limit
-            programs, values, _ = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False, deadline=deadline)
+        if cfg.insert:
+            growing = list(range(len(programs)))
+            for _ in range(cfg.insertions):
+                if not growing or (deadline is not None and time.perf_counter() > deadline):   # none after the limit
+                    break
+                programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False,
+                                                          only=growing, deadline=deadline)
+                growing = [i for i in growing if bool(inserted[i])]
         if cfg.swap and (deadline is None or time.perf_counter() <= deadline):
             programs, values, _ = swap(scorer, programs, values, cfg.tune_sweeps, deadline=deadline)
         if programs == before:

@@ -67,6 +67,9 @@ def test_no_rewrite_makes_a_program_worse(name):
     result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
                                                             swap=True))
     _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
+    result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
+                                                            insertions=3))
+    _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
 
 
 # one-step perturbations: (cases, programs sampled with at most this many primitives/parts)
@@ -165,6 +168,25 @@ def test_insertion_improves_an_empty_or_one_primitive_start(name):
         result = search(domain, target[:1], search_config(domain, insertions=2, **{"refine.rounds": 0}))
         perfect = 0.0 if not hib else 1.0
         assert float(result.values[0]) == perfect
+
+
+@pytest.mark.parametrize("name", domain_names())
+def test_refinement_inserts_up_to_its_count_per_round(name):
+    """``RefineConfig.insertions``: one round of refinement grows a program by that many primitives (parts), each
+    kept because it improves; one insertion per round (the default) leaves a two-primitive target half built."""
+    domain = get_domain(name)
+    two = domain.parse(TWO_PRIMITIVES[name][0])
+    target = _execute(domain, [two])
+    cfg = {"rounds": 1, "po_sweeps": 0, "prune": False, "tune_sweeps": 10}
+    once = refine(domain, [[]], target, RefineConfig(**cfg))
+    twice = refine(domain, [[]], target, RefineConfig(insertions=2, **cfg))
+    assert once.stats.as_dict()["accepted"]["insert"] == 1
+    assert twice.stats.as_dict()["accepted"]["insert"] == 2
+    hib = domain.metric.higher_is_better
+    assert float(oriented(twice.values, hib)[0]) < float(oriented(once.values, hib)[0])
+    assert torch.equal(domain.metric(_execute(domain, twice.programs), target), twice.values)
+    if name != "shapeassembly":   # the two primitives rebuilt exactly
+        assert float(twice.values[0]) == (1.0 if hib else 0.0)
 
 
 def test_swap_replaces_a_wrong_primitive_at_the_same_length():
