@@ -148,7 +148,7 @@ def refinement(domain: Domain, effort: str = "default") -> Refinement:
     return Refinement(RefineConfig(), all_candidates=effort == "best")
 
 
-def _refine(domain: Domain, inferred, targets: torch.Tensor,
+def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,
             how: Refinement) -> tuple[list[list[int]], torch.Tensor]:
     """(refined programs, their values) per shape of one batch: ``inferred`` (:class:`plad.model.decode.Inferred`)
     refined towards ``targets`` (B, *shape) on the CPU as ``how`` says."""
@@ -211,7 +211,7 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
             if refine is not None:
                 from plad.rewrite.evaluate import Scorer
 
-                programs, values = _refine(domain, inferred, targets.cpu(), refine)
+                programs, values = refine_inferred(domain, inferred, targets.cpu(), refine)
                 recons = Scorer(domain, targets.cpu()).outputs(programs)
             share = (time.perf_counter() - began) / len(chunk)
             for j, it in enumerate(chunk):
