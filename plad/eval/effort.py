@@ -153,6 +153,7 @@ def main(argv: list[str] | None = None) -> None:
         if not args.no_network:
             from plad.serve.infer import resolve_model
             model, model_ref = resolve_model(args.domain, args.model, torch.device("cpu"))
+            model_ref = model_ref.replace(f"{Path.cwd()}/", "")   # a committed file names no machine's folders
     except PladError as err:
         sys.exit(str(err))
     domain = get_domain(args.domain)
