@@ -90,6 +90,21 @@ KIND_STYLE = {"search": ("o-", "search from scratch"), "network": ("s--", "netwo
               "network + refinement": ("^-", "network (beam 10) + refinement")}
 
 
+def _read(path: Path) -> dict:
+    """A file written by ``measure``; a missing or malformed one is a :class:`~plad.errors.BadInput` naming it."""
+    from plad.errors import BadInput
+
+    try:
+        run = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise BadInput(f"{path}: not a readable effort file ({type(err).__name__}: {err})") from None
+    missing = [k for k in ("domain", "metric", "higher_is_better", "shapes", "points")
+               if not isinstance(run, dict) or k not in run]
+    if missing:
+        raise BadInput(f"{path}: not an effort file of `measure` (missing {', '.join(missing)})")
+    return run
+
+
 def plot(files: list[Path], out: Path) -> None:
     """One panel per measured domain: metric against CPU seconds per shape (log), a line per kind, each point
     labelled with its level or beam."""
@@ -98,7 +113,7 @@ def plot(files: list[Path], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = [json.loads(Path(f).read_text()) for f in files]
+    runs = [_read(Path(f)) for f in files]
     fig, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 4), squeeze=False)
     for ax, run in zip(axes[0], runs):
         for kind, (style, label) in KIND_STYLE.items():
@@ -138,7 +153,12 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     if args.command == "plot":
-        plot([Path(f) for f in args.files], Path(args.out))
+        from plad.errors import PladError
+
+        try:
+            plot([Path(f) for f in args.files], Path(args.out))
+        except PladError as err:
+            sys.exit(str(err))
         return
     from plad.data.files import load_split
     from plad.domains import domain_names, get_domain

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from plad.data.files import write_prepared
@@ -51,3 +52,16 @@ def test_measure_writes_its_json_and_plot_draws_it(tmp_path):
     png = tmp_path / "effort.png"
     plot([out], png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plot_names_a_file_that_is_not_an_effort_file(tmp_path):
+    from plad.errors import BadInput
+
+    broken, other = tmp_path / "broken.json", tmp_path / "other.json"
+    broken.write_text('{"domain": "csg2d"')
+    other.write_text('{"domain": "csg2d"}')
+    with pytest.raises(BadInput, match=r"broken\.json: not a readable effort file \(JSONDecodeError"):
+        plot([broken], tmp_path / "x.png")
+    with pytest.raises(BadInput, match=r"other\.json: not an effort file of `measure` \(missing metric, "):
+        plot([other], tmp_path / "x.png")
+    assert not (tmp_path / "x.png").exists()
