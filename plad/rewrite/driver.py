@@ -150,6 +150,20 @@ def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) ->
     return again
 
 
+def _grow(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, steps: int, sweeps: int, wide: bool,
+          deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
+    """Up to ``steps`` tuned insertions (:func:`insert_tuned`) one after another; a program stops growing at the
+    first that does not improve it, and no step starts after the deadline."""
+    growing = list(range(len(programs)))
+    for _ in range(steps):
+        if not growing or (deadline is not None and time.perf_counter() > deadline):
+            break
+        programs, values, inserted = insert_tuned(scorer, programs, values, sweeps, wide, only=growing,
+                                                  deadline=deadline)
+        growing = torch.nonzero(inserted).flatten().tolist()
+    return programs, values
+
+
 def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: RefineConfig,
                   deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
     for _ in range(cfg.rounds):
@@ -160,13 +174,7 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
         if cfg.insert:
-            growing = list(range(len(programs)))
-            for _ in range(cfg.insertions):
-                if not growing or (deadline is not None and time.perf_counter() > deadline):   # none after the limit
-                    break
-                programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps, False,
-                                                          only=growing, deadline=deadline)
-                growing = [i for i in growing if bool(inserted[i])]
+            programs, values = _grow(scorer, programs, values, cfg.insertions, cfg.tune_sweeps, False, deadline)
         if cfg.swap and (deadline is None or time.perf_counter() <= deadline):
             programs, values, _ = swap(scorer, programs, values, cfg.tune_sweeps, deadline=deadline)
         if programs == before:
@@ -258,13 +266,8 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
         if cfg.beam_width > 0:
             programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
         else:
-            growing = list(range(n))
-            for _ in range(cfg.insertions):
-                if not growing or (deadline is not None and time.perf_counter() > deadline):
-                    break
-                programs, values, inserted = insert_tuned(scorer, programs, values, cfg.tune_sweeps,
-                                                          cfg.tune_wide, only=growing, deadline=deadline)
-                growing = torch.nonzero(inserted).flatten().tolist()
+            programs, values = _grow(scorer, programs, values, cfg.insertions, cfg.tune_sweeps, cfg.tune_wide,
+                                     deadline)
             programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
         timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))

@@ -149,7 +149,7 @@ def refinement(domain: Domain, effort: str = "default") -> Refinement:
 
 
 def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,
-            how: Refinement) -> tuple[list[list[int]], torch.Tensor]:
+                    how: Refinement) -> tuple[list[list[int]], torch.Tensor]:
     """(refined programs, their values) per shape of one batch: ``inferred`` (:class:`plad.model.decode.Inferred`)
     refined towards ``targets`` (B, *shape) on the CPU as ``how`` says."""
     from plad.rewrite import refine as rewrite
