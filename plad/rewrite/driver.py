@@ -6,7 +6,7 @@ metric. ``refine`` repeats rounds of PO sweeps, pruning and one insertion
 until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
-(:mod:`.beam`), then refines. No step ever makes a program worse, and every
+(:mod:`.beam`), or both, then refines. No step ever makes a program worse, and every
 returned value is re-executed and re-scored at the end.
 
 One knob sets the effort of a search: ``effort`` (:data:`EFFORTS`), whose
@@ -83,6 +83,10 @@ class SearchConfig:
     beam_width: int = 0
     #: the best distinct programs the beam found that are each refined; the best refined one is returned
     beam_refine: int = 1
+    #: with a beam: first the greedy insertion (tuned by ``tune_sweeps``) and its refinement, as without one; the
+    #: beam's refined finds then replace its program only where they are better. The two explore differently
+    #: (tuned one at a time against a lookahead without tuning), and per shape the better of both pays (3D CSG)
+    greedy_first: bool = False
     #: PO sweeps over each inserted primitive's own block right after its insertion
     tune_sweeps: int = 0
     #: whether that tuning uses the large choice sets
@@ -96,6 +100,9 @@ class SearchConfig:
             raise ValueError(f"beam_refine = {self.beam_refine}: expected at least 1")
         if self.beam_width < 0:
             raise ValueError(f"beam_width = {self.beam_width}: expected 0 (greedy insertion) or a width of at least 1")
+        if self.greedy_first and self.beam_width == 0:
+            raise ValueError("greedy_first = true needs a beam (beam_width of at least 1): without one the search "
+                             "is the greedy insertion alone")
 
 
 @dataclass
@@ -249,8 +256,8 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
 
 
 def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
-    """Search from scratch for each target (B, *shape) bool: greedy insertion or a beam search, then
-    refinement."""
+    """Search from scratch for each target (B, *shape) bool: greedy insertion or a beam search (or both,
+    ``greedy_first``: the better per shape), then refinement."""
     cfg = config or search_config(domain)
     start = time.perf_counter()
     stats = Stats()
@@ -263,12 +270,12 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
         programs: list[list[int]] = [[] for _ in range(n)]
         values = scorer.values(programs)
         deadline = None if cfg.refine.time_limit is None else time.perf_counter() + cfg.refine.time_limit
-        if cfg.beam_width > 0:
-            programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
-        else:
+        if cfg.beam_width == 0 or cfg.greedy_first:
             programs, values = _grow(scorer, programs, values, cfg.insertions, cfg.tune_sweeps, cfg.tune_wide,
                                      deadline)
             programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
+        if cfg.beam_width > 0:
+            programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
         timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))
         out_programs += programs

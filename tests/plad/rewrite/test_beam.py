@@ -87,12 +87,32 @@ def test_beam_search_is_never_worse_than_its_start_and_reports_exact_values():
     assert bool((result.values <= unrefined).all())
 
 
+@pytest.mark.parametrize("name", ["csg2d", "csg3d"])
+def test_greedy_first_keeps_per_shape_the_better_of_the_greedy_and_the_beam_search(name):
+    """``greedy_first``: the greedy search runs, then the beam's refined finds replace its program only where
+    better, so each shape gets exactly the better of the two searches run alone."""
+    domain = get_domain(name)
+    rng = np.random.default_rng(4)
+    targets = _execute(domain, domain.sample(6, rng))
+    common = dict(insertions=3, beam_refine=2, **{"refine.rounds": 1, "refine.po_sweeps": 1})
+    greedy = search(domain, targets, search_config(domain, beam_width=0, **common))
+    beam = search(domain, targets, search_config(domain, beam_width=2, **common))
+    both = search(domain, targets, search_config(domain, beam_width=2, greedy_first=True, **common))
+    pick = torch.maximum if domain.metric.higher_is_better else torch.minimum
+    assert torch.equal(both.values, pick(greedy.values, beam.values))
+    assert torch.equal(domain.metric(_execute(domain, both.programs), targets), both.values)
+    assert both.stats.screened + both.stats.scored > beam.stats.screened + beam.stats.scored
+
+
 def test_bad_beam_settings_are_one_line():
     domain = get_domain("csg2d")
     for key, value in (("beam_width", -1), ("beam_refine", 0)):
         with pytest.raises(ConfigError, match=f"{key} = {value}: expected") as err:
             search_config(domain, **{key: value})
         assert len(str(err.value).splitlines()) == 1
+    with pytest.raises(ConfigError, match="greedy_first = true needs a beam") as err:
+        search_config(domain, greedy_first=True, beam_width=0)
+    assert len(str(err.value).splitlines()) == 1
 
 
 def test_effort_levels_are_monotone_in_work():
