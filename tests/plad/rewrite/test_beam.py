@@ -145,3 +145,15 @@ def test_bad_effort_is_one_line():
             search_config(domain, effort=bad)
         assert len(str(err.value).splitlines()) == 1
         assert "effort" in str(err.value) and "fast, default, best" in str(err.value)
+
+
+def test_csg3d_best_is_never_worse_than_default_per_shape():
+    """3D CSG's ``best`` runs the ``default`` search with more refinement, then a beam that replaces a program
+    only where better: per shape it can only gain."""
+    domain = get_domain("csg3d")
+    targets = _execute(domain, domain.sample(3, np.random.default_rng(7)))
+    default = search(domain, targets, search_config(domain, effort="default", insertions=4))
+    best = search(domain, targets, search_config(domain, effort="best", insertions=4))
+    assert search_config(domain, effort="best").greedy_first
+    assert bool((best.values >= default.values).all())
+    assert torch.equal(domain.metric(_execute(domain, best.programs), targets), best.values)
