@@ -158,7 +158,14 @@ class _LastCheckpoint:
     def _restore(self, payload: dict[str, Any]) -> dict[str, Any]:
         self.model.load_state_dict(payload["state_dict"])
         self.opt.load_state_dict(payload["optimizer"])
+        # the plateau rule's settings are this run's configuration, which a resume may change as it may change
+        # the budget (a saved state_dict carries them and would silently keep the old ones); its state (the
+        # best value, the epochs without improvement) comes from the checkpoint
+        settings = {k: getattr(self.sched, k) for k in ("factor", "patience", "threshold", "threshold_mode",
+                                                          "min_lrs", "eps")}
         self.sched.load_state_dict(payload["scheduler"])
+        for key, value in settings.items():
+            setattr(self.sched, key, value)
         _set_rng_state(payload["rng"])
         if self.stages is not None and payload.get("stages") is not None:
             self.stages.load_state_dict(payload["stages"])

@@ -124,6 +124,23 @@ def test_restart_sets_the_learning_rate_back_and_resume_keeps_it(programs, tmp_p
     assert lrs["resume"] == pytest.approx(2.5e-4)
 
 
+def test_a_resumed_run_takes_the_plateau_rule_of_its_configuration(programs, tmp_path):
+    """A killed run resumed with another ``lr_patience`` uses it (the saved scheduler state carries the old
+    settings, which were silently kept before)."""
+    decay = {"lr_patience": 0, "lr_factor": 0.5, "min_delta": 100.0}
+    layout = run_root(programs, tmp_path, "run")
+    pretrain(config(2, train=decay), layout)
+    pretrain(config(4, train={**decay, "lr_patience": 100}), layout)      # the same folder: a resume
+    rows = list(csv.DictReader((layout.pretrain_dir("csg2d") / HISTORY).open()))
+    assert [float(r["lr"]) for r in rows] == pytest.approx([1e-3, 5e-4, 5e-4, 5e-4])
+    # and the rule as it was goes on halving
+    again = run_root(programs, tmp_path, "again")
+    pretrain(config(2, train=decay), again)
+    pretrain(config(4, train=decay), again)
+    rows = list(csv.DictReader((again.pretrain_dir("csg2d") / HISTORY).open()))
+    assert [float(r["lr"]) for r in rows] == pytest.approx([1e-3, 5e-4, 2.5e-4, 1.25e-4])
+
+
 def test_a_zero_epoch_segment_keeps_the_continued_weights(programs, tmp_path):
     first, second = run_root(programs, tmp_path, "first"), run_root(programs, tmp_path, "second")
     pretrain(config(1), first)
