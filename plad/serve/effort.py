@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> None:
               "higher_is_better": domain.metric.higher_is_better, "shapes": int(len(targets)),
               "spaced": args.spaced, "model": model_ref, "points": points}
     report["provenance"] = stamp({k: report[k] for k in ("domain", "spaced", "model")}, started)
+    report["provenance"]["torch_threads"] = 1    # what measure() ran with (it restores the caller's after)
     atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")
     for pt in points:
         print(f"{args.domain} {pt['kind']} {pt['config']}: {pt['mean']:.4f} at {pt['s_per_shape']:.3f} s per shape")
