@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.domain not in domain_names():
         sys.exit(f"unknown domain {args.domain!r}: expected one of {', '.join(domain_names())}")
     try:
-        targets, index = load_split(Path(args.prepared) / f"{args.domain}.npz", "test", args.spaced)
+        targets, _ = load_split(Path(args.prepared) / f"{args.domain}.npz", "test", args.spaced)
         model, model_ref = None, None
         if not args.no_network:
             from plad.serve.infer import resolve_model
@@ -177,13 +177,13 @@ def main(argv: list[str] | None = None) -> None:
     except PladError as err:
         sys.exit(str(err))
     domain = get_domain(args.domain)
+    torch.set_num_threads(1)    # as measure() runs, so that the file's provenance records the count it ran with
     started = time.monotonic()
     points = measure(args.domain, targets, model)
     report = {"domain": args.domain, "metric": domain.metric.name,
               "higher_is_better": domain.metric.higher_is_better, "shapes": int(len(targets)),
               "spaced": args.spaced, "model": model_ref, "points": points}
     report["provenance"] = stamp({k: report[k] for k in ("domain", "spaced", "model")}, started)
-    report["provenance"]["torch_threads"] = 1    # what measure() ran with (it restores the caller's after)
     atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")
     for pt in points:
         print(f"{args.domain} {pt['kind']} {pt['config']}: {pt['mean']:.4f} at {pt['s_per_shape']:.3f} s per shape")
