@@ -15,6 +15,9 @@ what is declared here, so they never name a domain:
   makes a complete program of a sub-tree and :meth:`splice` replaces a
   sub-tree by another expression. A domain without such a tree returns no
   nodes and is never pruned.
+* **removals**: :meth:`RewriteSpace.removals` lists the valid programs with
+  one primitive (or part) fewer; from the tree by default, declared by a
+  domain without one.
 * **candidate generators** for insertion: :meth:`RewriteSpace.insertions`
   proposes programs with one more primitive (or part), from the programs'
   executions and their targets (the residual).
@@ -146,6 +149,10 @@ class RewriteSpace(abc.ABC):
     search_efforts: ClassVar[dict[str, dict[str, Any]]] = {
         "fast": {"refine": {"rounds": 0}}, "default": {}, "best": {"refine": {"rounds": 3}}}
 
+    #: Per-domain settings of :class:`plad.rewrite.driver.RefineConfig` for refining a network's programs
+    #: (``plad infer``'s ``default`` and ``best``; field -> value); the class's defaults where not set.
+    refine_defaults: ClassVar[dict[str, Any]] = {}
+
     def __init__(self, domain: Domain):
         self.domain = domain
 
@@ -192,6 +199,28 @@ class RewriteSpace(abc.ABC):
         """``program`` with the node's sub-expression replaced by the expression of the
         standalone program ``expression`` (as returned by :meth:`standalone`)."""
         raise NotImplementedError
+
+    def without(self, program: Sequence[int], nodes: list[Node], n: int) -> list[int] | None:
+        """The program without node ``n`` (of ``nodes``, its tree): its parent replaced by its only sibling;
+        None for the root or a parent with more than two operands."""
+        if nodes[n].parent < 0:
+            return None
+        parent = nodes[nodes[n].parent]
+        siblings = [c for c in parent.children if c != n]
+        if len(siblings) != 1:
+            return None
+        return self.splice(program, parent, self.standalone(program, nodes[siblings[0]]))
+
+    # ---- removal ----------------------------------------------------------------------------
+    def removals(self, program: Sequence[int]) -> list[list[int]]:
+        """Valid programs with one primitive (or part) of ``program`` removed, in token order; [] if none may
+        be. Default: each leaf of the expression tree (:meth:`nodes`) removed by :meth:`without`; a domain
+        without a tree declares its own."""
+        if not program:
+            return []
+        nodes = self.nodes(program)
+        shorter = (self.without(program, nodes, n) for n, node in enumerate(nodes) if not node.boolean)
+        return [p for p in shorter if p is not None]
 
     # ---- screen -----------------------------------------------------------------------------
     def prepare_screen(self, targets: torch.Tensor) -> Any:

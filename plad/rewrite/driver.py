@@ -2,7 +2,7 @@
 
 Both work on many shapes at once: the rewriters batch all candidates of all
 programs of a batch of shapes into single calls of the domain's executor and
-metric. ``refine`` repeats rounds of PO sweeps, pruning and one insertion
+metric. ``refine`` repeats rounds of (optional removals,) PO sweeps, pruning and one insertion
 until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
@@ -27,7 +27,7 @@ from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer, Stats, improves
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
-from plad.rewrite.prune import TOLERANCE, prune
+from plad.rewrite.prune import TOLERANCE, prune, remove
 from plad.rewrite.swap import swap
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -45,6 +45,10 @@ class RefineConfig:
     #: PO uses the domain's large choice sets (e.g. every draw token), else local neighbours only
     wide: bool = True
     prune: bool = True
+    #: first in each round, remove primitives while that improves (:func:`plad.rewrite.prune.remove`; a domain
+    #: without an expression tree, whose programs ``prune`` leaves as they are: ShapeAssembly). What refining a
+    #: network's program needs where it holds misplaced parts that insertion, which only adds, cannot undo
+    remove: bool = False
     #: try insertions each round (each tunes the inserted primitive, then keeps it only if that improves)
     insert: bool = True
     #: insertions per round, one after another; a program stops growing at the first that does not improve it.
@@ -178,6 +182,8 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
             break
         before = [list(p) for p in programs]
         programs, values = optimize(scorer, programs, values, sweeps=cfg.po_sweeps, wide=cfg.wide, deadline=deadline)
+        if cfg.remove:
+            programs, values = remove(scorer, programs, values)
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
         if cfg.insert:

@@ -12,6 +12,11 @@ Over the expression tree the domain declares
   the target; among those within a tolerance of the best one (SIRI: 0.001
   absolute or 0.005 relative), the shortest becomes the new program.
 
+**Removal** (:func:`remove`, also for a domain without such a tree, e.g.
+ShapeAssembly's parts): every program with one primitive fewer (the domain's
+:meth:`~plad.domains.space.RewriteSpace.removals`) is scored, and the best
+kept where it improves (ties win: it is shorter), until none does.
+
 Every rewrite is checked by executing and scoring the whole new program and
 kept only if it improves the objective (metric, then fewer tokens), so a
 pruned program is never worse; a bottom-up splice leaves the execution
@@ -26,6 +31,7 @@ import torch
 
 from plad.domains.space import Candidates, Node
 from plad.rewrite.evaluate import Scorer, improves, oriented
+from plad.rewrite.insert import take_best
 
 #: SIRI's tolerances of the top-down rule (absolute, relative to the best sub-tree's value)
 TOLERANCE = (0.001, 0.005)
@@ -46,18 +52,6 @@ def _accept(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, pro
     return int(ok.sum())
 
 
-def without(space, program: Sequence[int], nodes: list[Node], n: int) -> list[int] | None:
-    """The program without node ``n``: its parent replaced by its only sibling; None for the root or a parent
-    with more than two operands."""
-    if nodes[n].parent < 0:
-        return None
-    parent = nodes[nodes[n].parent]
-    siblings = [c for c in parent.children if c != n]
-    if len(siblings) != 1:
-        return None
-    return space.splice(program, parent, space.standalone(program, nodes[siblings[0]]))
-
-
 def _bottom_up_splice(space, program: Sequence[int], nodes: list[Node], outputs: torch.Tensor) -> list[int] | None:
     """The first applicable bottom-up splice (children before parents), or None."""
     flat = outputs.reshape(len(nodes), -1)
@@ -68,7 +62,7 @@ def _bottom_up_splice(space, program: Sequence[int], nodes: list[Node], outputs:
                 if torch.equal(flat[n], flat[c]):
                     return space.splice(program, node, space.standalone(program, nodes[c]))
         if bool(empty[n]):
-            shorter = without(space, program, nodes, n)
+            shorter = space.without(program, nodes, n)
             if shorter is not None:
                 return shorter
     return None
@@ -137,6 +131,32 @@ def top_down(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
                 break
     # the sub-trees' values are exact already; _accept re-executes them to confirm
     return _accept(scorer, programs, values, proposals)
+
+
+def remove(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_rounds: int = 32,
+           ) -> tuple[list[list[int]], torch.Tensor]:
+    """Removal of one primitive at a time (the domain's :meth:`removals`), each program's best removal kept
+    where it improves (metric, then fewer tokens), repeated until none does; returns (programs, values),
+    never worse."""
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    todo = [i for i, p in enumerate(programs) if p]
+    kept = 0
+    for _ in range(max_rounds):
+        rows, owner = [], []
+        for i in todo:
+            for shorter in scorer.space.removals(programs[i]):
+                rows.append(shorter)
+                owner.append(i)
+        if not rows:
+            break
+        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(rows, owner))
+        todo = torch.nonzero(taken).flatten().tolist()
+        kept += len(todo)
+        if not todo:
+            break
+    scorer.stats.accepted("remove", kept)
+    return programs, values
 
 
 def prune(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,

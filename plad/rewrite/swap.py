@@ -4,13 +4,14 @@ Insertion alone stops at the language's length cap (3D CSG: 12 primitives in
 100 tokens), and on the PartNet test shapes nine tenths of the search's loss
 is in programs at that cap: the primitives placed early, when the residual
 was large, stay even where a better one would fit now. A swap frees a place
-first: for every leaf of the program's expression tree (a primitive), the
-program without it (its parent replaced by its sibling, as pruning removes
-a node), then the domain's insertion candidates on each of those, all of
-them in one batch; per program the best candidate (screened, scored
-exactly) is tuned by PO over its new last block and kept only if the result
-beats the program (metric, then fewer tokens). So a swap never makes a
-program worse, and every kept value is exact.
+first: the program without each of its primitives (the domain's
+:meth:`~plad.domains.space.RewriteSpace.removals`: for a tree, a leaf's
+parent replaced by its sibling, as pruning removes a node), then the
+domain's insertion candidates on each of those, all of them in one batch;
+per program the best candidate (screened, scored exactly) is tuned by PO
+over its new last block and kept only if the result beats the program
+(metric, then fewer tokens). So a swap never makes a program worse, and
+every kept value is exact.
 """
 from __future__ import annotations
 
@@ -21,16 +22,6 @@ import torch
 
 from plad.rewrite.evaluate import Scorer
 from plad.rewrite.insert import keep_tuned, take_best
-from plad.rewrite.prune import without
-
-
-def removals(space, program: Sequence[int]) -> list[list[int]]:
-    """The program without each of its primitives (leaves whose parent is an operator), in token order."""
-    if not program:
-        return []
-    nodes = space.nodes(program)
-    shorter = (without(space, program, nodes, n) for n, node in enumerate(nodes) if not node.boolean)
-    return [p for p in shorter if p is not None]
 
 
 def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps: int, wide: bool = False,
@@ -46,7 +37,7 @@ def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps
     rows = list(range(len(programs))) if only is None else list(only)
     shorter, owner = [], []
     for i in rows:
-        for p in removals(scorer.space, programs[i]):
+        for p in scorer.space.removals(programs[i]):
             shorter.append(p)
             owner.append(i)
     if not shorter or (deadline is not None and time.perf_counter() > deadline):
@@ -62,4 +53,4 @@ def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps
     return programs, values, swapped
 
 
-__all__ = ["removals", "swap"]
+__all__ = ["swap"]

@@ -132,8 +132,9 @@ def refinement(domain: Domain, effort: str = "default") -> Refinement:
     * ``fast``: the best-of-beam program, refined as the domain's fast search refines
       (``search_config(domain, effort="fast").refine``; 2D CSG: one round; the domains that have not measured
       their levels: no rounds, the network's beam alone);
-    * ``default``: the best-of-beam program, refined by :class:`~plad.rewrite.RefineConfig` ``()`` (3 rounds):
-      what ``plad infer`` did before the levels existed. Not ``search_config(domain).refine``, which is less
+    * ``default``: the best-of-beam program, refined by :class:`~plad.rewrite.RefineConfig` ``()`` (3 rounds)
+      with the domain's ``refine_defaults`` (ShapeAssembly: removal of parts); what ``plad infer`` did before
+      the levels existed, but for those. Not ``search_config(domain).refine``, which is less
       work (2D and 3D CSG: one round; ShapeAssembly also fewer, narrower PO sweeps and no insertion);
     * ``best``: every candidate of the beam, each refined as for ``default``, the best kept per shape. Not
       ``search_config(domain, effort="best").refine`` either: no domain's is more work than ``RefineConfig()``
@@ -145,7 +146,8 @@ def refinement(domain: Domain, effort: str = "default") -> Refinement:
         raise ValueError(f"effort = {effort!r}: expected one of {', '.join(EFFORTS)}")
     if effort == "fast":
         return Refinement(search_config(domain, effort="fast").refine)
-    return Refinement(RefineConfig(), all_candidates=effort == "best")
+    space = domain.rewrite
+    return Refinement(RefineConfig(**(space.refine_defaults if space else {})), all_candidates=effort == "best")
 
 
 def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,

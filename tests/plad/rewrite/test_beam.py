@@ -8,7 +8,7 @@ import torch
 from plad.config import ConfigError
 from plad.domains import domain_names, get_domain
 from plad.domains.base import pad_programs
-from plad.rewrite import EFFORTS, search, search_config
+from plad.rewrite import EFFORTS, RefineConfig, search, search_config
 from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer
 
@@ -136,6 +136,7 @@ def test_every_domain_declares_every_effort(name):
     assert set(space.search_efforts) == set(EFFORTS)
     configs = [search_config(get_domain(name), effort=e) for e in EFFORTS]
     assert [c.effort for c in configs] == list(EFFORTS)
+    RefineConfig(**space.refine_defaults)     # the refinement of a network's programs: known fields only
 
 
 def test_bad_effort_is_one_line():

@@ -11,8 +11,8 @@ from plad.rewrite import RefineConfig, refine, search, search_config
 from plad.rewrite.evaluate import Scorer, oriented
 from plad.rewrite.insert import insert
 from plad.rewrite.po import optimize
-from plad.rewrite.prune import prune
-from plad.rewrite.swap import removals, swap
+from plad.rewrite.prune import prune, remove
+from plad.rewrite.swap import swap
 from tests.conftest import REPO_ROOT
 
 # programs per domain for the property tests (ShapeAssembly executes ~2 ms per program in Python)
@@ -58,6 +58,7 @@ def test_no_rewrite_makes_a_program_worse(name):
         "prune": lambda p, v: prune(scorer, p, v),
         "insert": lambda p, v: insert(scorer, p, v)[:2],
         "swap": lambda p, v: swap(scorer, p, v, sweeps=2)[:2],
+        "remove": lambda p, v: remove(scorer, p, v),
     }
     for step in steps.values():
         new, new_values = step(programs, values)
@@ -69,6 +70,9 @@ def test_no_rewrite_makes_a_program_worse(name):
     _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
     result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
                                                             insertions=3))
+    _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
+    result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
+                                                            remove=True))
     _assert_not_worse(domain, programs, values, result.programs, result.values, targets)
 
 
@@ -189,6 +193,55 @@ def test_refinement_inserts_up_to_its_count_per_round(name):
         assert float(twice.values[0]) == (1.0 if hib else 0.0)
 
 
+SA_THREE = ("START 24 Cuboid 10 6 10 Attach bbox bot fpos_5_5 fpos_3_3 "
+            "Cuboid 8 8 8 Attach bbox top fpos_5_5 fpos_7_7 "
+            "Cuboid 4 4 4 Attach cube1 bot fpos_5_5 fpos_5_5 Reflect X END")
+
+
+def test_shapeassembly_removals_renumber_later_references():
+    """A part no later part attaches to may go (the later references renumbered); one attached to may not."""
+    domain = get_domain("shapeassembly")
+    program = domain.parse(SA_THREE)
+    assert [domain.format(p) for p in domain.rewrite.removals(program)] == [
+        # cube0 removed: the third part's reference cube1 becomes cube0
+        "START 24 Cuboid 8 8 8 Attach bbox top fpos_5_5 fpos_7_7 "
+        "Cuboid 4 4 4 Attach cube0 bot fpos_5_5 fpos_5_5 Reflect X END",
+        # cube1 stays: the third part attaches to it; the last part goes with its symmetry
+        "START 24 Cuboid 10 6 10 Attach bbox bot fpos_5_5 fpos_3_3 "
+        "Cuboid 8 8 8 Attach bbox top fpos_5_5 fpos_7_7 END"]
+    # each removal executes to the union of the other parts, as placed in the original program
+    parts = [domain.parse(t) for t in (
+        "START 24 Cuboid 10 6 10 Attach bbox bot fpos_5_5 fpos_3_3 END",
+        "START 24 Cuboid 8 8 8 Attach bbox top fpos_5_5 fpos_7_7 END")]
+    one, two = _execute(domain, parts)
+    whole = _execute(domain, [program])[0]
+    without0, without2 = _execute(domain, domain.rewrite.removals(program))
+    assert torch.equal(without2, one | two)
+    assert torch.equal(without0, whole & ~(one & ~two))
+    assert domain.rewrite.removals(parts[0]) == []
+
+
+@pytest.mark.parametrize("name", domain_names())
+def test_removal_drops_a_wrong_primitive(name):
+    """``remove``: a program that is its target's exact program plus a wrong primitive (part) loses it; one
+    ``refine`` round with ``remove`` and nothing else does the same."""
+    domain = get_domain(name)
+    wrong = {"csg2d": "s(24,24,12)c(40,40,12)+t(48,16,8)+$",
+             "csg3d": "union union cuboid 8 8 8 7 7 7 cuboid 22 20 20 9 11 7 cuboid 26 4 26 3 3 3",
+             "shapeassembly": TWO_PRIMITIVES["shapeassembly"][0].replace(
+                 " END", " Cuboid 4 30 4 Attach bbox left fpos_5_5 fpos_5_5 END")}[name]
+    right = domain.parse(TWO_PRIMITIVES[name][0])
+    program = domain.parse(wrong)
+    target = _execute(domain, [right])
+    scorer = Scorer(domain, target)
+    new, values = remove(scorer, [program], scorer.values([program]))
+    assert new == [right] and float(values[0]) == (1.0 if domain.metric.higher_is_better else 0.0)
+    cfg = RefineConfig(rounds=1, po_sweeps=0, prune=False, insert=False, remove=True)
+    assert refine(domain, [program], target, cfg).programs == [right]
+    assert refine(domain, [program], target, RefineConfig(rounds=1, po_sweeps=0, prune=False,
+                                                          insert=False)).programs == [program]
+
+
 def test_swap_replaces_a_wrong_primitive_at_the_same_length():
     """Target: two boxes; program: one of them and a wrong box. Insertion would add the missing box beside the
     wrong one; a swap removes the wrong one and inserts the missing one in its place."""
@@ -196,7 +249,7 @@ def test_swap_replaces_a_wrong_primitive_at_the_same_length():
     a, b = "cuboid 8 8 8 7 7 7", "cuboid 22 22 22 9 9 9"
     target = _execute(domain, [domain.parse(f"union {a} {b}")])
     program = domain.parse(f"union {a} cuboid 22 6 26 5 5 5")
-    assert [domain.format(p) for p in removals(domain.rewrite, program)] == ["cuboid 22 6 26 5 5 5", a]
+    assert [domain.format(p) for p in domain.rewrite.removals(program)] == ["cuboid 22 6 26 5 5 5", a]
     scorer = Scorer(domain, target)
     values = scorer.values([program])
     new, new_values, swapped = swap(scorer, [program], values, sweeps=10)

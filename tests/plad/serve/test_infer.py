@@ -179,6 +179,10 @@ def test_refining_every_beam_candidate_is_never_worse_than_the_best_of_beam_only
     assert refinement(domain) == Refinement(RefineConfig())          # default: what infer always did
     assert refinement(domain, "best") == Refinement(RefineConfig(), all_candidates=True)
     assert refinement(domain, "fast") == Refinement(search_config(domain, effort="fast").refine)
+    # a domain's refine_defaults: ShapeAssembly removes parts (a tree domain prunes instead)
+    sa = get_domain("shapeassembly")
+    assert refinement(sa) == Refinement(RefineConfig(remove=True))
+    assert refinement(sa, "best") == Refinement(RefineConfig(remove=True), all_candidates=True)
     model = load_model(shipped_model("csg2d").checkpoint, torch.device("cpu"), expect_domain="csg2d")[0]
     values = {}
     for effort in ("default", "best"):
