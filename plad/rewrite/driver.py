@@ -2,7 +2,7 @@
 
 Both work on many shapes at once: the rewriters batch all candidates of all
 programs of a batch of shapes into single calls of the domain's executor and
-metric. ``refine`` repeats rounds of (optional removals,) PO sweeps, pruning and one insertion
+metric. ``refine`` repeats rounds of PO sweeps, (optional removals,) pruning and one insertion
 until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
@@ -45,9 +45,10 @@ class RefineConfig:
     #: PO uses the domain's large choice sets (e.g. every draw token), else local neighbours only
     wide: bool = True
     prune: bool = True
-    #: first in each round, remove primitives while that improves (:func:`plad.rewrite.prune.remove`; a domain
-    #: without an expression tree, whose programs ``prune`` leaves as they are: ShapeAssembly). What refining a
-    #: network's program needs where it holds misplaced parts that insertion, which only adds, cannot undo
+    #: after each round's PO, remove primitives while that improves (:func:`plad.rewrite.prune.remove`; any domain,
+    #: and the one rewrite that shortens a domain without an expression tree, whose programs ``prune`` leaves as
+    #: they are: ShapeAssembly). What refining a network's program needs where it holds misplaced parts that
+    #: insertion, which only adds, cannot undo
     remove: bool = False
     #: try insertions each round (each tunes the inserted primitive, then keeps it only if that improves)
     insert: bool = True
