@@ -133,6 +133,17 @@ def top_down(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
     return _accept(scorer, programs, values, proposals)
 
 
+def removal_candidates(space, programs: Sequence[Sequence[int]], rows: Sequence[int],
+                       ) -> tuple[list[list[int]], list[int]]:
+    """(programs with one primitive fewer, the index in ``programs`` each comes from), over ``rows``."""
+    shorter, owner = [], []
+    for i in rows:
+        for p in space.removals(programs[i]):
+            shorter.append(p)
+            owner.append(i)
+    return shorter, owner
+
+
 def remove(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_rounds: int = 32,
            ) -> tuple[list[list[int]], torch.Tensor]:
     """Removal of one primitive at a time (the domain's :meth:`removals`), each program's best removal kept
@@ -143,14 +154,10 @@ def remove(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_
     todo = [i for i, p in enumerate(programs) if p]
     kept = 0
     for _ in range(max_rounds):
-        rows, owner = [], []
-        for i in todo:
-            for shorter in scorer.space.removals(programs[i]):
-                rows.append(shorter)
-                owner.append(i)
-        if not rows:
+        shorter, owner = removal_candidates(scorer.space, programs, todo)
+        if not shorter:
             break
-        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(rows, owner))
+        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(shorter, owner))
         todo = torch.nonzero(taken).flatten().tolist()
         kept += len(todo)
         if not todo:

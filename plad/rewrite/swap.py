@@ -22,6 +22,7 @@ import torch
 
 from plad.rewrite.evaluate import Scorer
 from plad.rewrite.insert import keep_tuned, take_best
+from plad.rewrite.prune import removal_candidates
 
 
 def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps: int, wide: bool = False,
@@ -35,11 +36,7 @@ def swap(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, sweeps
     programs = [list(p) for p in programs]
     values = values.clone()
     rows = list(range(len(programs))) if only is None else list(only)
-    shorter, owner = [], []
-    for i in rows:
-        for p in scorer.space.removals(programs[i]):
-            shorter.append(p)
-            owner.append(i)
+    shorter, owner = removal_candidates(scorer.space, programs, rows)
     if not shorter or (deadline is not None and time.perf_counter() > deadline):
         return programs, values, torch.zeros(len(programs), dtype=torch.bool)
     owner_t = torch.tensor(owner, dtype=torch.long)

@@ -97,11 +97,9 @@ class CSG2DRewrite(RewriteSpace):
     # effort levels (100 evenly spaced CAD test shapes, one thread, CPU s per shape; docs/inference.md): fast is
     # the greedy search above (0.964, 0.13 s); default a beam of 2 over left-deep chains with every operator,
     # its 2 best finds refined (0.851, 0.28 s; a beam of 3: 0.833, 0.37 s, too close to the 10 minutes that all
-    # 3,000 test shapes may take on 2 workers); best a beam of 8, its 8 best finds refined (0.787, 1.08 s; 4
-    # refined: 0.800, 0.78 s; a beam of 16, 4 refined: 0.786, 1.40 s), and a swap in its refinement
-    # (plad.rewrite.swap; on 50 evenly spaced shapes 0.845 -> 0.840, 1.11 -> 1.55 s), now with a beam of 16, its 16
-    # best finds refined (100 shapes: 0.781 -> 0.761, 1.2 -> 2.4 s; all 3,000: 0.810 -> 0.783, 1.19 -> 3.06 s on a
-    # busy machine)
+    # 3,000 test shapes may take on 2 workers); best a beam of 16, its 16 best finds refined with a swap
+    # (plad.rewrite.swap) in their refinement (0.761, 2.4 s; all 3,000: 0.783, 3.06 s on a busy machine; a beam of 8,
+    # 8 refined: 0.781, 1.2 s, all 3,000: 0.810; 8 refined without the swap: 0.787, 1.08 s; 4 refined: 0.800, 0.78 s)
     search_efforts = {"fast": {}, "default": {"beam_width": 2, "beam_refine": 2},
                       "best": {"beam_width": 16, "beam_refine": 16, "refine": {"swap": True}}}
 
