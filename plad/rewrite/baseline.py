@@ -97,8 +97,11 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
+    from plad.config import ConfigError
     from plad.data.files import load_prepared, load_split
+    from plad.domains import get_domain
     from plad.fsutil import atomic_write_text
+    from plad.rewrite import search_config
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("domain")
@@ -113,6 +116,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+    overrides = {}
+    for item in args.set:
+        key, _, text = item.partition("=")
+        overrides[key.strip()] = yaml.safe_load(text)
+    try:    # a bad --set: one line before any work, not a traceback
+        search_config(get_domain(args.domain), **overrides)
+    except ConfigError as err:
+        print(err, file=sys.stderr)
+        return 1
     path = Path(args.prepared) / f"{args.domain}.npz"
     if not path.is_file():
         print(f"{path}: no such prepared dataset (run the prepare stages first)", file=sys.stderr)
@@ -124,10 +136,6 @@ def main(argv: list[str] | None = None) -> int:
         targets = load_split(path, args.split, args.spaced)[0]
     else:
         targets = load_prepared(path, args.split)[: args.limit]
-    overrides = {}
-    for item in args.set:
-        key, _, text = item.partition("=")
-        overrides[key.strip()] = yaml.safe_load(text)
     summary = run_baseline(args.domain, targets, args.workers, overrides)
     programs = summary.pop("programs")
     values = summary.pop("values")
