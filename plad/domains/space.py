@@ -186,6 +186,12 @@ class RewriteSpace(abc.ABC):
         pay greedily). Default: :meth:`insertions`."""
         return self.insertions(programs, outputs, targets)
 
+    def seeds(self, targets: torch.Tensor) -> list[list[int]] | None:
+        """One program per target (B, *shape) bool from which a search may also start (``SearchConfig.seeded``),
+        e.g. a primitive covering the whole shape that differences then carve; ``[]`` for a target without one.
+        None: the domain offers no seeds (the default)."""
+        return None
+
     # ---- CP ---------------------------------------------------------------------------------
     def nodes(self, program: Sequence[int]) -> list[Node]:
         """The expression tree of a valid program, children before parents; [] if none."""

@@ -6,7 +6,8 @@ metric. ``refine`` repeats rounds of PO sweeps, (optional removals,) pruning and
 until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
-(:mod:`.beam`), or both, then refines. No step ever makes a program worse, and every
+(:mod:`.beam`), or both, then refines; it may also grow the domain's seed
+programs (``seeded``) and keep per shape the better. No step ever makes a program worse, and every
 returned value is re-executed and re-scored at the end.
 
 One knob sets the effort of a search: ``effort`` (:data:`EFFORTS`), whose
@@ -92,6 +93,11 @@ class SearchConfig:
     #: beam's refined finds then replace its program only where they are better. The two explore differently
     #: (tuned one at a time against a lookahead without tuning), and per shape the better of both pays (3D CSG)
     greedy_first: bool = False
+    #: also the greedy insertion (tuned by ``tune_sweeps``) from the domain's seed program of each shape
+    #: (:meth:`~plad.domains.space.RewriteSpace.seeds`: 3D CSG's bounding box, which differences carve), refined
+    #: as the others; it replaces the shape's program where better. Another start explores another part of the
+    #: programs within the length cap (3D CSG). A domain without seeds ignores it
+    seeded: bool = False
     #: PO sweeps over each inserted primitive's own block right after its insertion
     tune_sweeps: int = 0
     #: whether that tuning uses the large choice sets
@@ -223,6 +229,21 @@ def _beam_then_refine(scorer: Scorer, programs: list[list[int]], values: torch.T
     return programs, values
 
 
+def _from_seeds(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
+                deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
+    """Greedy insertion from the domain's seeds, refined; per shape the result if it beats ``programs``."""
+    seeds = scorer.space.seeds(scorer.targets)
+    if seeds is None:
+        return programs, values
+    grown, grown_values = _grow(scorer, seeds, scorer.values(seeds), cfg.insertions, cfg.tune_sweeps,
+                                cfg.tune_wide, deadline)
+    grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
+    better = improves(grown_values, torch.tensor([len(p) for p in grown]), values,
+                      torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
+    programs = [grown[i] if better[i] else list(programs[i]) for i in range(len(programs))]
+    return programs, torch.where(better, grown_values, values)
+
+
 def _past(deadline: float | None) -> bool:
     """Whether a batch's work ended after its deadline. Every step checks the deadline before it starts (and PO
     and insertion between candidates), so a batch that ends past it may have skipped steps; one that ends
@@ -264,7 +285,8 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
 
 def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
     """Search from scratch for each target (B, *shape) bool: greedy insertion or a beam search (or both,
-    ``greedy_first``: the better per shape), then refinement."""
+    ``greedy_first``: the better per shape), then refinement; with ``seeded`` also the greedy insertion from the
+    domain's seed programs, the better per shape."""
     cfg = config or search_config(domain)
     start = time.perf_counter()
     stats = Stats()
@@ -283,6 +305,8 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
             programs, values = _refine_batch(scorer, programs, values, cfg.refine, deadline)
         if cfg.beam_width > 0:
             programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
+        if cfg.seeded:
+            programs, values = _from_seeds(scorer, programs, values, cfg, deadline)
         timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))
         out_programs += programs

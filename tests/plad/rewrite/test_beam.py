@@ -158,3 +158,52 @@ def test_csg3d_best_is_never_worse_than_default_per_shape():
     assert search_config(domain, effort="best").greedy_first
     assert bool((best.values >= default.values).all())
     assert torch.equal(domain.metric(_execute(domain, best.programs), targets), best.values)
+
+
+def test_csg3d_seed_is_the_cuboid_around_the_shape():
+    domain = get_domain("csg3d")
+    targets = _execute(domain, domain.sample(4, np.random.default_rng(3)))
+    targets = torch.cat([targets, torch.zeros(1, *domain.shape, dtype=torch.bool)])
+    seeds = domain.rewrite.seeds(targets)
+    assert seeds[-1] == []                                      # an empty shape has no seed
+    for seed, target in zip(seeds[:-1], targets[:-1]):
+        assert domain.format(seed).startswith("cuboid ") and len(seed) == 7
+        box = _execute(domain, [seed])[0]
+        assert bool((box | ~target).all())                      # covers the shape
+        for axis in range(3):                                   # and its extent, give or take one voxel
+            dims = tuple(a for a in range(3) if a != axis)
+            t, b = torch.nonzero(target.any(dim=dims)).flatten(), torch.nonzero(box.any(dim=dims)).flatten()
+            assert 0 <= t[0] - b[0] <= 1 and 0 <= b[-1] - t[-1] <= 1
+
+
+def test_seeded_search_carves_the_seed():
+    """Four table legs without a top, three insertions, no refinement: from the empty program the greedy
+    search places three legs (0.75); from the seed, differences carve the legs out of their box (exact)."""
+    domain = get_domain("csg3d")
+    target = torch.zeros(1, *domain.shape, dtype=torch.bool)
+    for x in (8, 22):
+        for z in (8, 22):
+            target[0, x:x + 3, 4:21, z:z + 3] = True
+    common = dict(insertions=3, **{"refine.rounds": 0})
+    plain = search(domain, target, search_config(domain, **common))
+    seeded = search(domain, target, search_config(domain, seeded=True, **common))
+    assert float(plain.values[0]) == 0.75
+    assert float(seeded.values[0]) == 1.0
+    assert domain.format(seeded.programs[0]).split()[:3] == ["diff", "diff", "diff"]
+
+
+@pytest.mark.parametrize("name", ["csg2d", "csg3d"])
+def test_seeded_search_is_never_worse_per_shape(name):
+    """``seeded`` adds a search from the domain's seeds that replaces a shape's program only where better;
+    a domain without seeds (2D CSG) gives exactly the search without."""
+    domain = get_domain(name)
+    rng = np.random.default_rng(5)
+    targets = _targets(domain, 6, 5) if name == "csg2d" else _execute(domain, domain.sample(6, rng))
+    common = dict(insertions=3, **{"refine.rounds": 1, "refine.po_sweeps": 1})
+    plain = search(domain, targets, search_config(domain, **common))
+    seeded = search(domain, targets, search_config(domain, seeded=True, **common))
+    assert torch.equal(domain.metric(_execute(domain, seeded.programs), targets), seeded.values)
+    if domain.rewrite.seeds(targets) is None:
+        assert seeded.programs == plain.programs
+    else:
+        assert bool((seeded.values >= plain.values).all())
