@@ -31,6 +31,7 @@ never executed and scores the metric's worst value.
 from __future__ import annotations
 
 import abc
+import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -152,9 +153,28 @@ class RewriteSpace(abc.ABC):
     #: Per-domain settings of :class:`plad.rewrite.driver.RefineConfig` for refining a network's programs
     #: (``plad infer``'s ``default`` and ``best``; field -> value); the class's defaults where not set.
     refine_defaults: ClassVar[dict[str, Any]] = {}
+    #: Tokens beyond the language's length cap that the domain's executor and moves handle, so that a search
+    #: may grow programs past the cap and shorten them again (``SearchConfig.overshoot``); 0: none
+    max_overshoot: ClassVar[int] = 0
 
     def __init__(self, domain: Domain):
         self.domain = domain
+        #: the longest program insertion proposes, in tokens: the language's length cap (:meth:`longer` lifts it)
+        self.max_len = domain.tokens.max_len
+
+    @contextlib.contextmanager
+    def longer(self, extra: int):
+        """Within the block, insertion proposes programs up to ``extra`` tokens beyond the length cap (at most
+        :attr:`max_overshoot`); such programs are for a search to shorten, never to return."""
+        if not 0 <= extra <= self.max_overshoot:
+            raise ValueError(f"{self.domain.name}: {extra} tokens beyond the length cap; the domain allows "
+                             f"0 to {self.max_overshoot}")
+        cap = self.max_len
+        self.max_len = cap + extra
+        try:
+            yield
+        finally:
+            self.max_len = cap
 
     # ---- PO -------------------------------------------------------------------------------
     @abc.abstractmethod

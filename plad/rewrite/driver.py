@@ -7,7 +7,8 @@ until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
 (:mod:`.beam`), or both, then refines; it may also grow the domain's seed
-programs (``seeded``) and keep per shape the better. No step ever makes a program worse, and every
+programs (``seeded``) or grow past the length cap and shorten again
+(``overshoot``), and keep per shape the better. No step ever makes a program worse, and every
 returned value is re-executed and re-scored at the end.
 
 One knob sets the effort of a search: ``effort`` (:data:`EFFORTS`), whose
@@ -28,7 +29,7 @@ from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer, Stats, improves
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
-from plad.rewrite.prune import TOLERANCE, prune, remove
+from plad.rewrite.prune import TOLERANCE, eliminate, prune, remove
 from plad.rewrite.swap import swap
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -98,6 +99,12 @@ class SearchConfig:
     #: as the others; it replaces the shape's program where better. Another start explores another part of the
     #: programs within the length cap (3D CSG). A domain without seeds ignores it
     seeded: bool = False
+    #: tokens beyond the language's length cap (at most the domain's ``max_overshoot``) that one more greedy
+    #: insertion from the empty program (tuned by ``tune_sweeps``) may use; backward elimination
+    #: (:func:`~plad.rewrite.prune.eliminate`) then shortens its program back within the cap, the refinement
+    #: follows, and the result replaces the shape's program where better. Choosing which primitives to keep
+    #: among more than fit is what the cap leaves to do (3D CSG); 0: none
+    overshoot: int = 0
     #: PO sweeps over each inserted primitive's own block right after its insertion
     tune_sweeps: int = 0
     #: whether that tuning uses the large choice sets
@@ -111,6 +118,8 @@ class SearchConfig:
             raise ValueError(f"beam_refine = {self.beam_refine}: expected at least 1")
         if self.beam_width < 0:
             raise ValueError(f"beam_width = {self.beam_width}: expected 0 (greedy insertion) or a width of at least 1")
+        if self.overshoot < 0:
+            raise ValueError(f"overshoot = {self.overshoot}: expected a number of tokens, 0 or more")
         if self.greedy_first and self.beam_width == 0:
             raise ValueError("greedy_first = true needs a beam (beam_width of at least 1): without one the search "
                              "is the greedy insertion alone")
@@ -155,7 +164,12 @@ def search_config(domain: Domain, **overrides) -> SearchConfig:
                 raw.setdefault("refine", {}).update(value)
             else:
                 raw[key] = value
-    return build(SearchConfig, raw, "search", source="search configuration")
+    config = build(SearchConfig, raw, "search", source="search configuration")
+    allowed = space.max_overshoot if space else 0
+    if config.overshoot > allowed:
+        raise ConfigError(f"search configuration: overshoot = {config.overshoot}: the {domain.name} domain runs "
+                          f"programs of at most {allowed} tokens beyond its length cap")
+    return config
 
 
 def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) -> torch.Tensor:
@@ -244,6 +258,24 @@ def _from_seeds(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
     return programs, torch.where(better, grown_values, values)
 
 
+def _overshoot(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
+               deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
+    """Greedy insertion past the length cap, elimination back within it, refinement; per shape the result if
+    it beats ``programs``."""
+    space = scorer.space
+    empty: list[list[int]] = [[] for _ in programs]
+    with space.longer(cfg.overshoot):
+        # the cap ends the growth: a step adds at least one token
+        grown, grown_values = _grow(scorer, empty, scorer.values(empty), space.max_len, cfg.tune_sweeps,
+                                    cfg.tune_wide, deadline)
+    grown, grown_values = eliminate(scorer, grown, grown_values, space.max_len)
+    grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
+    better = improves(grown_values, torch.tensor([len(p) for p in grown]), values,
+                      torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
+    programs = [grown[i] if better[i] else list(programs[i]) for i in range(len(programs))]
+    return programs, torch.where(better, grown_values, values)
+
+
 def _past(deadline: float | None) -> bool:
     """Whether a batch's work ended after its deadline. Every step checks the deadline before it starts (and PO
     and insertion between candidates), so a batch that ends past it may have skipped steps; one that ends
@@ -286,7 +318,8 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
 def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = None) -> Result:
     """Search from scratch for each target (B, *shape) bool: greedy insertion or a beam search (or both,
     ``greedy_first``: the better per shape), then refinement; with ``seeded`` also the greedy insertion from the
-    domain's seed programs, the better per shape."""
+    domain's seed programs, and with ``overshoot`` one past the length cap and shortened again, each the better
+    per shape."""
     cfg = config or search_config(domain)
     start = time.perf_counter()
     stats = Stats()
@@ -307,6 +340,8 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
             programs, values = _beam_then_refine(scorer, programs, values, cfg, deadline)
         if cfg.seeded:
             programs, values = _from_seeds(scorer, programs, values, cfg, deadline)
+        if cfg.overshoot:
+            programs, values = _overshoot(scorer, programs, values, cfg, deadline)
         timed |= _past(deadline)
         out_values.append(_confirm(scorer, programs, values))
         out_programs += programs

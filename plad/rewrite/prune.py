@@ -16,8 +16,10 @@ Over the expression tree the domain declares
 ShapeAssembly's parts): every program with one primitive fewer (the domain's
 :meth:`~plad.domains.space.RewriteSpace.removals`) is scored, and the best
 kept where it improves (ties win: it is shorter), until none does.
+**Elimination** (:func:`eliminate`) takes the best removal whether or not it
+improves, to bring a program grown past the length cap back within it.
 
-Every rewrite is checked by executing and scoring the whole new program and
+Every other rewrite is checked by executing and scoring the whole new program and
 kept only if it improves the objective (metric, then fewer tokens), so a
 pruned program is never worse; a bottom-up splice leaves the execution
 unchanged and only shortens the program.
@@ -32,6 +34,7 @@ import torch
 from plad.domains.space import Candidates, Node
 from plad.rewrite.evaluate import Scorer, improves, oriented
 from plad.rewrite.insert import take_best
+from plad.rewrite.po import optimize
 
 #: SIRI's tolerances of the top-down rule (absolute, relative to the best sub-tree's value)
 TOLERANCE = (0.001, 0.005)
@@ -164,6 +167,26 @@ def remove(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_
             break
     scorer.stats.accepted("remove", kept)
     return programs, values
+
+
+def eliminate(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_len: int, sweeps: int = 3,
+              ) -> tuple[list[list[int]], torch.Tensor]:
+    """Backward elimination: each program longer than ``max_len`` tokens loses the primitive whose removal
+    costs least (the domain's :meth:`removals`), is tuned by ``sweeps`` local PO sweeps, and so on until it
+    fits. Unlike the other rewriters it may make a program worse: it shortens programs grown past the length
+    cap (``SearchConfig.overshoot``), whose caller keeps a result only where it beats its own."""
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    while True:
+        rows = [i for i, p in enumerate(programs) if len(p) > max_len]
+        if not rows:
+            return programs, values
+        shorter, owner = removal_candidates(scorer.space, programs, rows)
+        if not shorter:
+            raise ValueError(f"elimination: program {rows[0]} is longer than {max_len} tokens and has no removal")
+        programs, values, _ = take_best(scorer, programs, values, Candidates.from_lists(shorter, owner), force=True)
+        if sweeps > 0:
+            programs, values = optimize(scorer, programs, values, sweeps=sweeps, wide=False, only=rows)
 
 
 def prune(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,

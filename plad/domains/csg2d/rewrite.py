@@ -108,7 +108,6 @@ class CSG2DRewrite(RewriteSpace):
         table = domain.tokens
         self.table = table
         self.stop = table.index("$")
-        self.max_len = table.max_len
         self.kind = np.array([t.kind for t in table.tokens])
         self.draws = np.array([i for i, t in enumerate(table.tokens) if t.kind == "draw"], dtype=np.int64)
         self.ops = {t.kind: i for i, t in enumerate(table.tokens) if t.kind in _OPERATORS}

@@ -58,6 +58,8 @@ def fit_box(lo: Sequence[int], hi: Sequence[int]) -> list[int]:
 
 class CSG3DRewrite(RewriteSpace):
     screen_keep = 1
+    # the executor runs programs of any length (a left-deep chain of 25 primitives: 199 tokens)
+    max_overshoot = 100
     # up to 12 primitives, each tuned by +-1/+-2 coordinate descent until no gain (capped at 60
     # moves), then one round of refinement: on 100 PartNet test shapes IoU 0.874 after the greedy
     # phase, 0.884 after refinement
@@ -86,7 +88,6 @@ class CSG3DRewrite(RewriteSpace):
         self.op = {o: table.index(o) for o in OPERATORS}
         self._other = {i: tuple(j for j in group.values() if j != i)
                        for group in (self.prim, self.op) for i in group.values()}
-        self.max_len = table.max_len
         self._is_op = torch.tensor([k == "operator" for k in self.kind] + [False, False])
         self._is_prim = torch.tensor([k == "primitive" for k in self.kind] + [True, True])
         self._value = torch.from_numpy(np.concatenate([self.value, [0, 0]]))

@@ -75,7 +75,6 @@ class ShapeAssemblyRewrite(RewriteSpace):
         self.kind = [t.kind for t in table.tokens]
         self.params = [t.params for t in table.tokens]
         self.id = {t.name: i for i, t in enumerate(table.tokens)}
-        self.max_len = table.max_len
 
     # ---- PO -------------------------------------------------------------------------------
     def _num(self, v: int, wide: bool) -> tuple[int, ...]:
