@@ -207,3 +207,52 @@ def test_seeded_search_is_never_worse_per_shape(name):
         assert seeded.programs == plain.programs
     else:
         assert bool((seeded.values >= plain.values).all())
+
+
+def test_eliminate_brings_programs_back_within_the_cap():
+    """A 3D CSG program of 14 cuboids (111 tokens, past the cap of 100) loses its cheapest primitives until it
+    fits; the values it reports are the executor's."""
+    from plad.rewrite.prune import eliminate
+
+    domain = get_domain("csg3d")
+    rng = np.random.default_rng(2)
+    boxes = [" ".join(["cuboid"] + [str(v) for v in rng.integers(6, 26, 3)] + [str(v) for v in rng.integers(2, 9, 3)])
+             for _ in range(14)]
+    # token by token: parsing would refuse a program past the cap
+    long = [domain.tokens.index(word) for word in ("union " * 13 + " ".join(boxes)).split()]
+    assert len(long) == 111
+    target = _execute(domain, domain.sample(1, rng))
+    scorer = Scorer(domain, target)
+    short, values = eliminate(scorer, [long], scorer.values([long]), max_len=100)
+    assert len(short[0]) <= 100 and len(short[0]) == 95      # two primitives fewer: 12 cuboids
+    domain.check(short[0])
+    assert torch.equal(domain.metric(_execute(domain, short), target), values)
+
+
+def test_overshoot_search_is_never_worse_per_shape_and_returns_valid_programs():
+    domain = get_domain("csg3d")
+    targets = _execute(domain, domain.sample(4, np.random.default_rng(8)))
+    common = dict(insertions=3, tune_sweeps=2, **{"refine.rounds": 1, "refine.po_sweeps": 1})
+    plain = search(domain, targets, search_config(domain, **common))
+    over = search(domain, targets, search_config(domain, overshoot=16, **common))
+    assert bool((over.values >= plain.values).all())
+    for p in over.programs:
+        domain.check(p)                                         # within the language's cap again
+    assert torch.equal(domain.metric(_execute(domain, over.programs), targets), over.values)
+    assert domain.rewrite.max_len == domain.tokens.max_len       # the cap is back after the search
+
+
+def test_overshoot_beyond_what_a_domain_allows_is_one_line():
+    for name in ("csg2d", "shapeassembly"):
+        with pytest.raises(ConfigError, match="overshoot = 4: the .* domain runs programs of at most 0 tokens") as err:
+            search_config(get_domain(name), overshoot=4)
+        assert len(str(err.value).splitlines()) == 1
+    space = get_domain("csg3d").rewrite
+    with pytest.raises(ValueError, match="0 to 100"):
+        with space.longer(101):
+            pass
+    with pytest.raises(RuntimeError):
+        with space.longer(8):
+            assert space.max_len == space.domain.tokens.max_len + 8
+            raise RuntimeError("inside")
+    assert space.max_len == space.domain.tokens.max_len
