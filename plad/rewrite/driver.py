@@ -243,6 +243,15 @@ def _beam_then_refine(scorer: Scorer, programs: list[list[int]], values: torch.T
     return programs, values
 
 
+def _keep_better(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, new: list[list[int]],
+                 new_values: torch.Tensor) -> tuple[list[list[int]], torch.Tensor]:
+    """Per shape ``new`` where it beats ``programs`` (metric, then fewer tokens), else ``programs``."""
+    better = improves(new_values, torch.tensor([len(p) for p in new]), values,
+                      torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
+    programs = [new[i] if better[i] else list(programs[i]) for i in range(len(programs))]
+    return programs, torch.where(better, new_values, values)
+
+
 def _from_seeds(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
                 deadline: float | None) -> tuple[list[list[int]], torch.Tensor]:
     """Greedy insertion from the domain's seeds, refined; per shape the result if it beats ``programs``."""
@@ -252,10 +261,7 @@ def _from_seeds(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
     grown, grown_values = _grow(scorer, seeds, scorer.values(seeds), cfg.insertions, cfg.tune_sweeps,
                                 cfg.tune_wide, deadline)
     grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
-    better = improves(grown_values, torch.tensor([len(p) for p in grown]), values,
-                      torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
-    programs = [grown[i] if better[i] else list(programs[i]) for i in range(len(programs))]
-    return programs, torch.where(better, grown_values, values)
+    return _keep_better(scorer, programs, values, grown, grown_values)
 
 
 def _overshoot(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
@@ -270,10 +276,7 @@ def _overshoot(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, 
                                     cfg.tune_wide, deadline)
     grown, grown_values = eliminate(scorer, grown, grown_values, space.max_len)
     grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
-    better = improves(grown_values, torch.tensor([len(p) for p in grown]), values,
-                      torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
-    programs = [grown[i] if better[i] else list(programs[i]) for i in range(len(programs))]
-    return programs, torch.where(better, grown_values, values)
+    return _keep_better(scorer, programs, values, grown, grown_values)
 
 
 def _past(deadline: float | None) -> bool:
