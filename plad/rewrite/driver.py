@@ -243,9 +243,11 @@ def _beam_then_refine(scorer: Scorer, programs: list[list[int]], values: torch.T
     return programs, values
 
 
-def _keep_better(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, new: list[list[int]],
-                 new_values: torch.Tensor) -> tuple[list[list[int]], torch.Tensor]:
-    """Per shape ``new`` where it beats ``programs`` (metric, then fewer tokens), else ``programs``."""
+def _refined_where_better(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, new: list[list[int]],
+                          new_values: torch.Tensor, cfg: SearchConfig, deadline: float | None,
+                          ) -> tuple[list[list[int]], torch.Tensor]:
+    """``new`` refined (``cfg.refine``), then per shape where it beats ``programs`` (metric, then fewer tokens)."""
+    new, new_values = _refine_batch(scorer, new, new_values, cfg.refine, deadline)
     better = improves(new_values, torch.tensor([len(p) for p in new]), values,
                       torch.tensor([len(p) for p in programs]), scorer.higher_is_better)
     programs = [new[i] if better[i] else list(programs[i]) for i in range(len(programs))]
@@ -260,8 +262,7 @@ def _from_seeds(scorer: Scorer, programs: list[list[int]], values: torch.Tensor,
         return programs, values
     grown, grown_values = _grow(scorer, seeds, scorer.values(seeds), cfg.insertions, cfg.tune_sweeps,
                                 cfg.tune_wide, deadline)
-    grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
-    return _keep_better(scorer, programs, values, grown, grown_values)
+    return _refined_where_better(scorer, programs, values, grown, grown_values, cfg, deadline)
 
 
 def _overshoot(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, cfg: SearchConfig,
@@ -275,8 +276,7 @@ def _overshoot(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, 
         grown, grown_values = _grow(scorer, empty, scorer.values(empty), space.max_len, cfg.tune_sweeps,
                                     cfg.tune_wide, deadline)
     grown, grown_values = eliminate(scorer, grown, grown_values, space.max_len)
-    grown, grown_values = _refine_batch(scorer, grown, grown_values, cfg.refine, deadline)
-    return _keep_better(scorer, programs, values, grown, grown_values)
+    return _refined_where_better(scorer, programs, values, grown, grown_values, cfg, deadline)
 
 
 def _past(deadline: float | None) -> bool:
