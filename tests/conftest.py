@@ -42,6 +42,13 @@ def shared_dir() -> Path:
     return Path(os.environ.get("PLAD_SHARED_DIR", REPO_ROOT.parent / "shared")).resolve()
 
 
+# The stages and CLIs the tests run read the data directory from params (null: $PLAD_DATA_DIR, else
+# ./data/datasets, which a fresh clone lacks): point them at the shared datasets the tests read themselves, so
+# the README's test command needs no environment variable
+if "PLAD_DATA_DIR" not in os.environ and (shared_dir() / "datasets").is_dir():
+    os.environ["PLAD_DATA_DIR"] = str(shared_dir() / "datasets")
+
+
 def under_ci() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
