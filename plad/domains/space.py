@@ -156,6 +156,9 @@ class RewriteSpace(abc.ABC):
     #: Tokens beyond the language's length cap that the domain's executor and moves handle, so that a search
     #: may grow programs past the cap and shorten them again (``SearchConfig.overshoot``); 0: none
     max_overshoot: ClassVar[int] = 0
+    #: whether the domain's expression tree (:meth:`nodes`) has only binary boolean operators that
+    #: :meth:`operator` names, so that grafting (``RefineConfig.graft``) can invert them
+    grafts: ClassVar[bool] = False
 
     def __init__(self, domain: Domain):
         self.domain = domain
@@ -225,6 +228,11 @@ class RewriteSpace(abc.ABC):
         """``program`` with the node's sub-expression replaced by the expression of the
         standalone program ``expression`` (as returned by :meth:`standalone`)."""
         raise NotImplementedError
+
+    def operator(self, program: Sequence[int], node: Node) -> str:
+        """The boolean operator of a node with children (``nodes``): "union", "intersection" or "difference"
+        (its first operand minus its second), for grafting (:mod:`plad.rewrite.graft`), which inverts it."""
+        raise NotImplementedError(f"{self.domain.name}: no boolean operators to graft through")
 
     def without(self, program: Sequence[int], nodes: list[Node], n: int) -> list[int] | None:
         """The program without node ``n`` (of ``nodes``, its tree): its parent replaced by its only sibling;

@@ -52,6 +52,7 @@ PLAN = "plan.npz"
 def check(cfg: PBestSearchConfig, domain, where: str) -> None:
     """Fail early (ConfigError naming ``where``) on a bad share, budget or rewriter configuration."""
     from plad.rewrite import search_config
+    from plad.rewrite.driver import check_refine
 
     for name in ("seed_share", "rewrite_share"):
         v = getattr(cfg, name)
@@ -65,10 +66,11 @@ def check(cfg: PBestSearchConfig, domain, where: str) -> None:
         raise ConfigError(f"{where}: workers ({cfg.workers}) and chunk ({cfg.chunk}) must be at least 1")
     if domain.rewrite is None:
         raise ConfigError(f"{where}: the {domain.name} domain has no search support")
-    for name, build in (("seed_config", lambda c: search_config(domain, **c)), ("rewrite_config", refine_config)):
+    for name, build in (("seed_config", lambda c: search_config(domain, **c)),
+                        ("rewrite_config", lambda c: check_refine(domain, refine_config(c)))):
         try:
             build(getattr(cfg, name))
-        except (ConfigError, TypeError) as err:
+        except (ConfigError, TypeError, ValueError) as err:
             raise ConfigError(f"{where}.{name}: {err}") from None
 
 

@@ -2,7 +2,7 @@
 
 Both work on many shapes at once: the rewriters batch all candidates of all
 programs of a batch of shapes into single calls of the domain's executor and
-metric. ``refine`` repeats rounds of PO sweeps, (optional removals,) pruning and one insertion
+metric. ``refine`` repeats rounds of PO sweeps, (optional removals,) pruning, (optional grafting,) and one insertion
 until a round changes nothing; ``search`` starts from the empty program and
 either inserts primitives greedily (each new primitive optionally tuned by PO
 on its own parameters) or runs a beam search over partial programs
@@ -27,6 +27,7 @@ import torch
 
 from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer, Stats, improves
+from plad.rewrite.graft import graft
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import TOLERANCE, eliminate, prune, remove
@@ -59,6 +60,10 @@ class RefineConfig:
     insertions: int = 1
     #: PO sweeps over the inserted primitive's own block after an insertion
     tune_sweeps: int = 10
+    #: graft each round after pruning (:mod:`plad.rewrite.graft`, SIRI's code grafting): this many nearest
+    #: sub-expressions of the batch's programs per node, by the node's desired execution (SIRI: 15); 0: off.
+    #: Domains with an expression tree of boolean operators only (2D and 3D CSG)
+    graft: int = 0
     #: try one swap per round after the insertion (:mod:`plad.rewrite.swap`: remove a primitive, insert the
     #: best new one, tune it by ``tune_sweeps``); what helps where the length cap stops insertion
     swap: bool = False
@@ -165,11 +170,24 @@ def search_config(domain: Domain, **overrides) -> SearchConfig:
             else:
                 raw[key] = value
     config = build(SearchConfig, raw, "search", source="search configuration")
+    try:
+        check_refine(domain, config.refine)
+    except ValueError as err:
+        raise ConfigError(f"search configuration: {err}") from None
     allowed = space.max_overshoot if space else 0
     if config.overshoot > allowed:
         raise ConfigError(f"search configuration: overshoot = {config.overshoot}: the {domain.name} domain runs "
                           f"programs of at most {allowed} tokens beyond its length cap")
     return config
+
+
+def check_refine(domain: Domain, cfg: RefineConfig) -> None:
+    """ValueError for settings the domain cannot run: grafting (``graft``) without boolean operators."""
+    if cfg.graft < 0:
+        raise ValueError(f"refine.graft = {cfg.graft}: expected a number of sub-expressions per node, 0 for none")
+    if cfg.graft and not (domain.rewrite is not None and domain.rewrite.grafts):
+        raise ValueError(f"refine.graft = {cfg.graft}: the {domain.name} domain has no expression tree of boolean "
+                         f"operators to graft into; set it to 0")
 
 
 def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) -> torch.Tensor:
@@ -207,6 +225,8 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
             programs, values = remove(scorer, programs, values)
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
+        if cfg.graft:
+            programs, values = graft(scorer, programs, values, k=cfg.graft)
         if cfg.insert:
             programs, values = _grow(scorer, programs, values, cfg.insertions, cfg.tune_sweeps, False, deadline)
         if cfg.swap and (deadline is None or time.perf_counter() <= deadline):
@@ -299,6 +319,7 @@ def refine(domain: Domain, programs: Sequence[Sequence[int]], targets: torch.Ten
     is grown by insertion.
     """
     cfg = config or RefineConfig()
+    check_refine(domain, cfg)
     start = time.perf_counter()
     stats = Stats()
     out_programs: list[list[int]] = []
@@ -324,6 +345,7 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
     domain's seed programs, and with ``overshoot`` one past the length cap and shortened again, each the better
     per shape."""
     cfg = config or search_config(domain)
+    check_refine(domain, cfg.refine)
     start = time.perf_counter()
     stats = Stats()
     out_programs: list[list[int]] = []
@@ -353,4 +375,4 @@ def search(domain: Domain, targets: torch.Tensor, config: SearchConfig | None = 
     return Result(out_programs, values, time.perf_counter() - start, stats, timed)
 
 
-__all__ = ["EFFORTS", "RefineConfig", "Result", "SearchConfig", "refine", "search", "search_config"]
+__all__ = ["EFFORTS", "RefineConfig", "Result", "SearchConfig", "check_refine", "refine", "search", "search_config"]

@@ -32,6 +32,8 @@ from plad.domains.csg3d.executor import EMPTY_PRIMITIVE, FULL_PRIMITIVE, pack, r
 from plad.domains.csg3d.tokens import N_PARAMS, OPERATORS, PARAM_MAX, PARAM_MIN, PRIMITIVES
 from plad.domains.space import Candidates, Node, RewriteSpace, Slot
 
+#: the language's operators by the names grafting knows them by (plad.rewrite.graft)
+_OPERATOR_NAMES = {"union": "union", "inter": "intersection", "diff": "difference"}
 #: parameter steps of PO
 LOCAL_STEPS = (-2, -1, 1, 2)
 WIDE_STEPS = (-8, -4, -2, -1, 1, 2, 4, 8)
@@ -89,6 +91,7 @@ class CSG3DRewrite(RewriteSpace):
         self.num = {v: table.index(str(v)) for v in range(PARAM_MIN, PARAM_MAX + 1)}
         self.prim = {p: table.index(p) for p in PRIMITIVES}
         self.op = {o: table.index(o) for o in OPERATORS}
+        self._op_name = {i: o for o, i in self.op.items()}
         self._other = {i: tuple(j for j in group.values() if j != i)
                        for group in (self.prim, self.op) for i in group.values()}
         self._is_op = torch.tensor([k == "operator" for k in self.kind] + [False, False])
@@ -159,6 +162,12 @@ class CSG3DRewrite(RewriteSpace):
 
         parse(0)
         return [Node(s, e, c, p) for s, e, c, p in spans]
+
+    grafts = True
+
+    def operator(self, program: Sequence[int], node: Node) -> str:
+        # prefix: the operator opens the node's span; the executor computes first & ~second for a difference
+        return _OPERATOR_NAMES[self._op_name[program[node.start]]]
 
     def standalone(self, program: Sequence[int], node: Node) -> list[int]:
         return list(program[node.start:node.end])

@@ -1,0 +1,184 @@
+"""Code grafting (CG), as SIRI does it: replace a sub-expression by a cached one that executes to what the
+node should.
+
+For every node of a program's expression tree
+(:meth:`~plad.domains.space.RewriteSpace.nodes`) the **desired execution** follows from the target by
+inverting the boolean operators above it (:func:`desired`): the root should execute to the target; below a
+union, where the sibling is full, the child may be anything; below an intersection, where the sibling is
+empty; the first operand of a difference, where the second is full; the second operand, where the first is
+empty, and elsewhere it should be the complement of what its parent should be. So each node gets a wanted
+execution and a mask of the pixels (voxels) that matter.
+
+The **library** is every sub-expression of a set of programs (by default the batch's own programs, so shapes
+lend each other their parts, as SIRI's cache of P_BEST's sub-expressions does), one per distinct execution
+(the shortest). For each node the ``k`` entries whose executions differ least from the wanted one on its
+mask (a Hamming distance, by one matrix product) are spliced in; every candidate is executed and scored
+exactly, and each program takes its best where that improves it (metric, then fewer tokens). Programs that
+improved are grafted again, up to ``rewrites`` times.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from plad.domains.space import Candidates, Node
+from plad.rewrite.evaluate import Scorer
+from plad.rewrite.insert import take_best
+
+#: SIRI: the 15 nearest cached sub-expressions per node, at most 10 rewrites per program
+NEAREST = 15
+REWRITES = 10
+#: elements of a float32 temporary of the distance product (queries or entries x pixels per block)
+_BLOCK_ELEMENTS = 1 << 24
+
+
+def desired(space, program: Sequence[int], nodes: list[Node], outputs: torch.Tensor, target: torch.Tensor,
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """What each node of ``program`` should execute to: (want, care), both (len(nodes), D) bool.
+
+    ``outputs``: the nodes' executions (len(nodes), *shape) bool; ``target`` (*shape) bool. Where ``care`` is
+    False the program's execution does not depend on the node's; where it is True the program's execution
+    equals the target there exactly when the node's execution equals ``want``.
+    """
+    n = len(nodes)
+    flat = outputs.reshape(n, -1)
+    want = torch.empty_like(flat)
+    care = torch.empty_like(flat)
+    root = next(i for i, node in enumerate(nodes) if node.parent < 0)
+    want[root] = target.reshape(-1)
+    care[root] = True
+    # parents come after their children in ``nodes``: walk them from the root down
+    for i in reversed(range(n)):
+        node = nodes[i]
+        if not node.boolean:
+            continue
+        if len(node.children) != 2:
+            raise ValueError(f"grafting: node {i} has {len(node.children)} operands; only binary operators invert")
+        a, b = node.children
+        op = space.operator(program, node)
+        if op == "union":         # a | b: a matters where b is empty
+            want[a], care[a] = want[i], care[i] & ~flat[b]
+            want[b], care[b] = want[i], care[i] & ~flat[a]
+        elif op == "intersection":  # a & b: a matters where b is full
+            want[a], care[a] = want[i], care[i] & flat[b]
+            want[b], care[b] = want[i], care[i] & flat[a]
+        elif op == "difference":  # a & ~b: a where b is empty; b, complemented, where a is full
+            want[a], care[a] = want[i], care[i] & ~flat[b]
+            want[b], care[b] = ~want[i], care[i] & flat[a]
+        else:
+            raise ValueError(f"grafting: operator {op!r} of node {i}: expected union, intersection or difference")
+    return want, care
+
+
+@dataclass
+class Library:
+    """Distinct sub-expressions: ``programs`` (standalone token lists) and their executions (M, D) bool."""
+
+    programs: list[list[int]]
+    executions: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.programs)
+
+    @staticmethod
+    def build(space, programs: Sequence[Sequence[int]], outputs: torch.Tensor) -> Library:
+        """From standalone ``programs`` and their executions (M, *shape) bool: one per distinct execution, the
+        shortest (then the first); empty and full executions are left out (pruning handles those)."""
+        flat = outputs.reshape(len(programs), -1)
+        keep: dict[bytes, int] = {}
+        filled = flat.any(1) & ~flat.all(1)
+        for j in torch.nonzero(filled).flatten().tolist():
+            key = flat[j].numpy().tobytes()
+            if key not in keep or len(programs[j]) < len(programs[keep[key]]):
+                keep[key] = j
+        rows = sorted(keep.values())
+        return Library([list(programs[j]) for j in rows], flat[rows].clone())
+
+    def nearest(self, want: torch.Tensor, care: torch.Tensor, k: int) -> torch.Tensor:
+        """The ``k`` entries (fewer if the library is smaller) whose executions differ least from ``want`` on
+        ``care`` (Q, D) bool -> (Q, k) indices, nearest first.
+
+        The masked Hamming distance sum(care & (want ^ e)) is |care & want| + s . e with s = care * (1 - 2 want)
+        in {-1, 0, 1}: one matrix product, exact in float32 (counts below 2^24).
+        """
+        k = min(k, len(self))
+        q = want.shape[0]
+        out = torch.empty(q, k, dtype=torch.long)
+        if k == 0:
+            return out
+        block = max(1, _BLOCK_ELEMENTS // want.shape[1])
+        for s in range(0, q, block):
+            w, c = want[s:s + block], care[s:s + block]
+            signed = c.float() * (1 - 2 * w.float())                       # (q', D)
+            base = (c & w).sum(1, keepdim=True).float()
+            dist = torch.empty(len(w), len(self))
+            for e in range(0, len(self), block):
+                dist[:, e:e + block] = base + signed @ self.executions[e:e + block].float().T
+            out[s:s + block] = torch.topk(dist, k, dim=1, largest=False).indices
+        return out
+
+
+def _trees(scorer: Scorer, programs: list[list[int]], rows: Sequence[int]):
+    """Each row's nodes and the nodes' standalone programs and executions (one batch for all rows)."""
+    space = scorer.space
+    trees, subprograms, spans = {}, [], {}
+    for i in rows:
+        nodes = space.nodes(programs[i]) if programs[i] else []
+        if nodes:
+            trees[i] = nodes
+            spans[i] = (len(subprograms), len(subprograms) + len(nodes))
+            subprograms += [space.standalone(programs[i], node) for node in nodes]
+    outputs = scorer.outputs(subprograms) if subprograms else None
+    return trees, subprograms, spans, outputs
+
+
+def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: int = NEAREST,
+          rewrites: int = REWRITES, library: Library | None = None,
+          ) -> tuple[list[list[int]], torch.Tensor]:
+    """Graft into every program (see the module docstring); returns (programs, values), never worse.
+
+    ``library``: the sub-expressions to graft; None: those of ``programs`` as they are on entry.
+    """
+    space = scorer.space
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    todo = [i for i, p in enumerate(programs) if p]
+    kept = 0
+    for _ in range(rewrites):
+        trees, subprograms, spans, outputs = _trees(scorer, programs, todo)
+        if not trees:
+            break
+        if library is None:
+            library = Library.build(space, subprograms, outputs)
+        if not len(library):
+            break
+        wants, cares, where = [], [], []
+        for i, nodes in trees.items():
+            a, b = spans[i]
+            want, care = desired(space, programs[i], nodes, outputs[a:b], scorer.targets[i])
+            wants.append(want)
+            cares.append(care)
+            where += [(i, n) for n in range(len(nodes))]
+        near = library.nearest(torch.cat(wants), torch.cat(cares), k)
+        cands, owner = [], []
+        for (i, n), hits in zip(where, near.tolist()):
+            node = trees[i][n]
+            for h in hits:
+                new = space.splice(programs[i], node, library.programs[h])
+                if len(new) <= space.max_len and new != programs[i]:
+                    cands.append(new)
+                    owner.append(i)
+        if not cands:
+            break
+        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(cands, owner))
+        todo = torch.nonzero(taken).flatten().tolist()
+        kept += len(todo)
+        if not todo:
+            break
+    scorer.stats.accepted("graft", kept)
+    return programs, values
+
+
+__all__ = ["NEAREST", "REWRITES", "Library", "desired", "graft"]
