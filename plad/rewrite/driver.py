@@ -27,7 +27,7 @@ import torch
 
 from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer, Stats, improves
-from plad.rewrite.graft import graft
+from plad.rewrite.graft import graft, library_path, load_library
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import TOLERANCE, eliminate, prune, remove
@@ -64,6 +64,10 @@ class RefineConfig:
     #: sub-expressions of the batch's programs per node, by the node's desired execution (SIRI: 15); 0: off.
     #: Domains with an expression tree of boolean operators only (2D and 3D CSG)
     graft: int = 0
+    #: sub-expressions grafted besides the batch's own: "shipped" (the domain's own library, package data of its
+    #: plugin: sub-expressions of programs found for training shapes), a library file (``python -m
+    #: plad.rewrite.graft_library``), or null (the batch's only: what grafting finds then grows with the batch)
+    graft_library: str | None = None
     #: try one swap per round after the insertion (:mod:`plad.rewrite.swap`: remove a primitive, insert the
     #: best new one, tune it by ``tune_sweeps``); what helps where the length cap stops insertion
     swap: bool = False
@@ -188,6 +192,8 @@ def check_refine(domain: Domain, cfg: RefineConfig) -> None:
     if cfg.graft and not (domain.rewrite is not None and domain.rewrite.grafts):
         raise ValueError(f"refine.graft = {cfg.graft}: the {domain.name} domain has no expression tree of boolean "
                          f"operators to graft into; set it to 0")
+    if cfg.graft and cfg.graft_library is not None:
+        library_path(domain, cfg.graft_library)
 
 
 def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) -> torch.Tensor:
@@ -226,7 +232,8 @@ def _refine_batch(scorer: Scorer, programs: list[list[int]], values: torch.Tenso
         if cfg.prune:
             programs, values = prune(scorer, programs, values, TOLERANCE)
         if cfg.graft:
-            programs, values = graft(scorer, programs, values, k=cfg.graft)
+            extra = None if cfg.graft_library is None else load_library(scorer.domain, cfg.graft_library)
+            programs, values = graft(scorer, programs, values, k=cfg.graft, extra=extra)
         if cfg.insert:
             programs, values = _grow(scorer, programs, values, cfg.insertions, cfg.tune_sweeps, False, deadline)
         if cfg.swap and (deadline is None or time.perf_counter() <= deadline):

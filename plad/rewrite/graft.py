@@ -19,8 +19,10 @@ improved are grafted again, up to ``rewrites`` times.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from plad.domains.space import Candidates, Node
@@ -78,12 +80,13 @@ class Library:
 
     programs: list[list[int]]
     executions: torch.Tensor
+    _dense: torch.Tensor | None = field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.programs)
 
     @staticmethod
-    def build(space, programs: Sequence[Sequence[int]], outputs: torch.Tensor) -> Library:
+    def build(programs: Sequence[Sequence[int]], outputs: torch.Tensor) -> Library:
         """From standalone ``programs`` and their executions (M, *shape) bool: one per distinct execution, the
         shortest (then the first); empty and full executions are left out (pruning handles those)."""
         flat = outputs.reshape(len(programs), -1)
@@ -96,28 +99,108 @@ class Library:
         rows = sorted(keep.values())
         return Library([list(programs[j]) for j in rows], flat[rows].clone())
 
-    def nearest(self, want: torch.Tensor, care: torch.Tensor, k: int) -> torch.Tensor:
-        """The ``k`` entries (fewer if the library is smaller) whose executions differ least from ``want`` on
-        ``care`` (Q, D) bool -> (Q, k) indices, nearest first.
+    def save(self, path: str | Path, domain) -> None:
+        """Write the programs (their executions are recomputed on loading), atomically."""
+        from plad.fsutil import atomic_write
 
-        The masked Hamming distance sum(care & (want ^ e)) is |care & want| + s . e with s = care * (1 - 2 want)
-        in {-1, 0, 1}: one matrix product, exact in float32 (counts below 2^24).
-        """
-        k = min(k, len(self))
-        q = want.shape[0]
-        out = torch.empty(q, k, dtype=torch.long)
-        if k == 0:
-            return out
-        block = max(1, _BLOCK_ELEMENTS // want.shape[1])
-        for s in range(0, q, block):
-            w, c = want[s:s + block], care[s:s + block]
-            signed = c.float() * (1 - 2 * w.float())                       # (q', D)
-            base = (c & w).sum(1, keepdim=True).float()
-            dist = torch.empty(len(w), len(self))
-            for e in range(0, len(self), block):
-                dist[:, e:e + block] = base + signed @ self.executions[e:e + block].float().T
-            out[s:s + block] = torch.topk(dist, k, dim=1, largest=False).indices
+        width = max((len(p) for p in self.programs), default=1)
+        tokens = np.full((len(self), width), -1, dtype=np.int16)
+        for i, p in enumerate(self.programs):
+            tokens[i, :len(p)] = p
+        atomic_write(Path(path), lambda fh: np.savez_compressed(fh, tokens=tokens, domain=np.array(domain.name)))
+
+    @staticmethod
+    def load(path: str | Path, domain) -> Library:
+        """A library written by :meth:`save` for ``domain``; ValueError naming the file if it is not one."""
+        path = Path(path)
+        try:
+            with np.load(path) as f:
+                tokens, name = f["tokens"], str(f["domain"])
+        except (OSError, KeyError, ValueError) as err:
+            raise ValueError(f"{path}: not a grafting library ({err})") from None
+        if name != domain.name:
+            raise ValueError(f"{path}: a grafting library of {name}, not of {domain.name}")
+        programs = [[int(t) for t in row if t >= 0] for row in tokens]
+        for i, p in enumerate(programs):
+            try:
+                domain.check(p)
+            except Exception as err:
+                raise ValueError(f"{path}: program {i} is not a valid {domain.name} program: {err}") from None
+        from plad.domains.base import pad_programs
+
+        outputs = torch.cat([domain.execute(pad_programs(programs[s:s + 4096]))
+                             for s in range(0, len(programs), 4096)]) if programs else torch.zeros(0, *domain.shape)
+        return Library.build(programs, outputs.bool())
+
+    def dense(self) -> torch.Tensor:
+        """The executions as float32 (M, D), made once per library (a loaded library is kept per process, so
+        refining shape after shape does not convert its executions again)."""
+        if self._dense is None:
+            self._dense = self.executions.float()
+        return self._dense
+
+    def nearest(self, want: torch.Tensor, care: torch.Tensor, k: int) -> torch.Tensor:
+        """The ``k`` entries nearest to ``want`` on ``care``: :func:`nearest` of this library alone."""
+        return nearest([self], want, care, k)
+
+
+def nearest(libraries: Sequence[Library], want: torch.Tensor, care: torch.Tensor, k: int) -> torch.Tensor:
+    """The ``k`` entries (fewer if the libraries hold fewer) whose executions differ least from ``want`` on
+    ``care`` (Q, D) bool -> (Q, k) indices into the libraries' entries one after another, nearest first.
+
+    The masked Hamming distance sum(care & (want ^ e)) is |care & want| + s . e with s = care * (1 - 2 want)
+    in {-1, 0, 1}: one matrix product per library, exact in float32 (counts below 2^24).
+    """
+    total = sum(len(lib) for lib in libraries)
+    k = min(k, total)
+    q = want.shape[0]
+    out = torch.empty(q, k, dtype=torch.long)
+    if k == 0:
         return out
+    block = max(1, _BLOCK_ELEMENTS // max(want.shape[1], total))
+    for s in range(0, q, block):
+        w, c = want[s:s + block], care[s:s + block]
+        signed = c.float() * (1 - 2 * w.float())                       # (q', D)
+        base = (c & w).sum(1, keepdim=True).float()
+        dist = torch.cat([base + signed @ lib.dense().T for lib in libraries if len(lib)], dim=1)   # (q', total)
+        out[s:s + block] = torch.topk(dist, k, dim=1, largest=False).indices
+    return out
+
+
+#: the file name of a domain's own library (:func:`library_path`), in its plugin's package
+SHIPPED = "graft_library.npz"
+_LOADED: dict[tuple[str, str], Library] = {}
+
+
+def shipped_library(domain) -> Path:
+    """Where the domain's own library lives: ``plad/domains/<domain>/graft_library.npz`` (package data)."""
+    import inspect
+
+    return Path(inspect.getfile(type(domain))).parent / SHIPPED
+
+
+def library_path(domain, name: str) -> Path:
+    """The file of a library setting: ``"shipped"`` (the domain's own, :func:`shipped_library`) or a path;
+    ValueError if there is no such file."""
+    if name == "shipped":
+        path = shipped_library(domain)
+        if not path.is_file():
+            raise ValueError(f"graft_library = shipped: {domain.name} ships no grafting library ({path}); build one "
+                             f"with python -m plad.rewrite.graft_library {domain.name}")
+        return path
+    path = Path(name)
+    if not path.is_file():
+        raise ValueError(f"graft_library = {name}: no such file")
+    return path
+
+
+def load_library(domain, name: str) -> Library:
+    """The library of a setting (:func:`library_path`), loaded once per process."""
+    path = library_path(domain, name)
+    key = (domain.name, str(path.resolve()))
+    if key not in _LOADED:
+        _LOADED[key] = Library.load(path, domain)
+    return _LOADED[key]
 
 
 def _trees(scorer: Scorer, programs: list[list[int]], rows: Sequence[int]):
@@ -135,11 +218,12 @@ def _trees(scorer: Scorer, programs: list[list[int]], rows: Sequence[int]):
 
 
 def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: int = NEAREST,
-          rewrites: int = REWRITES, library: Library | None = None,
+          rewrites: int = REWRITES, library: Library | None = None, extra: Library | None = None,
           ) -> tuple[list[list[int]], torch.Tensor]:
     """Graft into every program (see the module docstring); returns (programs, values), never worse.
 
-    ``library``: the sub-expressions to graft; None: those of ``programs`` as they are on entry.
+    ``library``: the sub-expressions to graft; None: those of ``programs`` as they are on entry, with those of
+    ``extra`` (e.g. a library shipped with the model: :func:`load_library`).
     """
     space = scorer.space
     programs = [list(p) for p in programs]
@@ -151,8 +235,10 @@ def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: in
         if not trees:
             break
         if library is None:
-            library = Library.build(space, subprograms, outputs)
-        if not len(library):
+            library = Library.build(subprograms, outputs)
+        libraries = [library] if extra is None else [library, extra]
+        entries = [p for lib in libraries for p in lib.programs]
+        if not entries:
             break
         wants, cares, where = [], [], []
         for i, nodes in trees.items():
@@ -161,12 +247,12 @@ def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: in
             wants.append(want)
             cares.append(care)
             where += [(i, n) for n in range(len(nodes))]
-        near = library.nearest(torch.cat(wants), torch.cat(cares), k)
+        near = nearest(libraries, torch.cat(wants), torch.cat(cares), k)
         cands, owner = [], []
         for (i, n), hits in zip(where, near.tolist()):
             node = trees[i][n]
             for h in hits:
-                new = space.splice(programs[i], node, library.programs[h])
+                new = space.splice(programs[i], node, entries[h])
                 if len(new) <= space.max_len and new != programs[i]:
                     cands.append(new)
                     owner.append(i)
@@ -181,4 +267,17 @@ def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: in
     return programs, values
 
 
-__all__ = ["NEAREST", "REWRITES", "Library", "desired", "graft"]
+def sub_expressions(domain, programs: Sequence[Sequence[int]]) -> Library:
+    """The library of every sub-expression of ``programs`` (e.g. programs found for training shapes)."""
+    space = domain.rewrite
+    subprograms = [space.standalone(p, node) for p in programs if p for node in space.nodes(p)]
+    from plad.domains.base import pad_programs
+
+    outputs = torch.cat([domain.execute(pad_programs(subprograms[s:s + 4096])).bool()
+                         for s in range(0, len(subprograms), 4096)]) if subprograms else torch.zeros(0, *domain.shape)
+    return Library.build(subprograms, outputs.bool())
+
+
+__all__ = ["NEAREST", "REWRITES", "SHIPPED", "Library", "desired", "graft", "library_path",
+           "load_library", "nearest", "shipped_library",
+           "sub_expressions"]

@@ -79,7 +79,7 @@ def test_library_keeps_one_shortest_expression_per_execution():
     square = "s(32,32,8)"
     programs = [domain.parse(f"{square}$"), domain.parse(f"{square}{square}+$"), domain.parse("c(16,16,8)$")]
     outputs = _execute(domain, programs)
-    lib = Library.build(domain.rewrite, programs, outputs)
+    lib = Library.build(programs, outputs)
     assert [domain.format(p) for p in lib.programs] == [f"{square}$", "c(16,16,8)$"]
     # nearest by the masked Hamming distance: the circle's own execution, cared for everywhere, is entry 1
     want = outputs[2].reshape(1, -1)
@@ -92,8 +92,9 @@ def test_library_keeps_one_shortest_expression_per_execution():
 def test_grafting_never_makes_a_program_worse(name):
     domain = get_domain(name)
     rng = np.random.default_rng(11)
-    programs = domain.sample(16, rng)
-    targets = _execute(domain, domain.sample(16, rng))
+    n = 16 if name == "csg2d" else 6         # a 3D CSG graft scores its candidates on 32^3 grids: keep it small
+    programs = domain.sample(n, rng)
+    targets = _execute(domain, domain.sample(n, rng))
     scorer = Scorer(domain, targets)
     values = scorer.values(programs)
     new, new_values = graft(scorer, programs, values, k=5)
@@ -101,7 +102,7 @@ def test_grafting_never_makes_a_program_worse(name):
     assert bool((oriented(new_values, hib) <= oriented(values, hib)).all())
     assert torch.equal(domain.metric(_execute(domain, new), targets), new_values)
     assert all(len(p) <= domain.rewrite.max_len for p in new)
-    result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=1, wide=False, tune_sweeps=1,
+    result = refine(domain, programs, targets, RefineConfig(rounds=1, po_sweeps=0, insert=False, prune=False,
                                                             graft=5))
     assert bool((oriented(result.values, hib) <= oriented(values, hib)).all())
     assert "graft" in result.stats.counts
@@ -115,3 +116,70 @@ def test_grafting_without_boolean_operators_is_a_one_line_error():
         refine(domain, [[]], torch.zeros(1, *domain.shape, dtype=torch.bool), RefineConfig(graft=15))
     with pytest.raises(ConfigError, match="refine.graft = -1"):
         search_config(get_domain("csg2d"), **{"refine.graft": -1})
+
+
+def test_a_library_file_lends_parts_no_program_of_the_batch_holds(tmp_path):
+    """The same graft as above with the donor only in a saved library (as one shipped with a model)."""
+    from plad.rewrite.graft import sub_expressions
+
+    domain = get_domain("csg2d")
+    a, b, c, d, x = "c(16,16,12)", "s(40,40,16)", "c(40,40,8)", "t(48,16,8)", "s(16,48,8)"
+    library = sub_expressions(domain, [domain.parse(f"{x}{b}{c}-+$")])
+    # the donor's 5 sub-expressions: s(16,48,8), b, c, b - c, x + (b - c)
+    assert len(library) == 5
+    path = tmp_path / "lib.npz"
+    library.save(path, domain)
+    loaded = Library.load(path, domain)
+    assert loaded.programs == library.programs and torch.equal(loaded.executions, library.executions)
+    wrong = domain.parse(f"{a}{d}+$")
+    scorer = Scorer(domain, _execute(domain, [domain.parse(f"{a}{b}{c}-+$")]))
+    alone, alone_values = graft(scorer, [wrong], scorer.values([wrong]))
+    assert float(alone_values[0]) > 0.0           # its own sub-expressions cannot make the difference
+    programs, values = graft(scorer, [wrong], scorer.values([wrong]), extra=loaded)
+    assert domain.format(programs[0]) == f"{a}{b}{c}-+$" and float(values[0]) == 0.0
+    result = refine(domain, [wrong], scorer.targets, RefineConfig(rounds=1, graft=15, graft_library=str(path)))
+    assert float(result.values[0]) == 0.0
+
+
+def test_a_bad_library_is_a_one_line_error_naming_the_file(tmp_path):
+    from plad.rewrite.graft import sub_expressions
+
+    csg2d, csg3d = get_domain("csg2d"), get_domain("csg3d")
+    other = tmp_path / "csg3d.npz"
+    sub_expressions(csg3d, csg3d.sample(2, np.random.default_rng(0))).save(other, csg3d)
+    with pytest.raises(ValueError, match=f"{other}: a grafting library of csg3d, not of csg2d"):
+        Library.load(other, csg2d)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=f"{garbage}: not a grafting library"):
+        Library.load(garbage, csg2d)
+    with pytest.raises(ConfigError, match="graft_library = nowhere.npz: no such file"):
+        search_config(csg2d, **{"refine.graft_library": "nowhere.npz"})
+    with pytest.raises(ConfigError, match="csg3d ships no grafting library"):
+        search_config(csg3d, **{"refine.graft": 15, "refine.graft_library": "shipped"})
+
+
+def test_the_library_command_writes_what_a_refinement_loads(tmp_path, capsys):
+    from plad.data.files import write_prepared
+    from plad.rewrite import graft_library
+
+    domain = get_domain("csg2d")
+    shapes = _execute(domain, [domain.parse("s(24,24,8)c(40,40,12)+$"), domain.parse("s(32,32,16)c(32,32,8)-$")])
+    write_prepared("csg2d", domain.shape, {"train": shapes.numpy()}, tmp_path / "csg2d.npz", tmp_path / "csg2d.json")
+    out = tmp_path / "lib.npz"
+    graft_library.main(["csg2d", "--prepared", str(tmp_path), "--spaced", "2", "--out", str(out)])
+    assert f"{out}: 6 sub-expressions" in capsys.readouterr().out
+    library = Library.load(out, domain)
+    # search finds both shapes exactly: the library executes to their 6 sub-expressions, all distinct
+    expected = _execute(domain, [domain.parse(t) for t in (
+        "s(24,24,8)$", "c(40,40,12)$", "s(24,24,8)c(40,40,12)+$", "s(32,32,16)$", "c(32,32,8)$",
+        "s(32,32,16)c(32,32,8)-$")])
+    def keys(x):
+        return sorted(row.numpy().tobytes() for row in x.reshape(len(x), -1))
+
+    assert keys(library.executions) == keys(expected)
+    assert search_config(domain, **{"refine.graft_library": str(out)}).refine.graft_library == str(out)
+    with pytest.raises(SystemExit, match="shapeassembly: the domain has no expression tree"):
+        graft_library.main(["shapeassembly", "--prepared", str(tmp_path)])
+    with pytest.raises(SystemExit, match="no such prepared dataset"):
+        graft_library.main(["csg3d", "--prepared", str(tmp_path)])
