@@ -96,9 +96,13 @@ class CSG2DRewrite(RewriteSpace):
     # and grafting (plad.rewrite.graft, 15 nearest sub-expressions of the batch's programs per node) in every
     # refinement round, of a search and of a network's programs: on the same 100 shapes, one thread, CPU s per
     # shape, fast 0.964 -> 0.938 (0.12 -> 0.15 s), default 0.851 -> 0.820 (0.31 -> 0.33 s), best 0.761 -> 0.737
-    # (3.1 -> 3.5 s); the shipped network's beam refined (plad infer) 0.885 -> 0.863 (0.14 -> 0.18 s)
+    # (3.1 -> 3.5 s). Refining a network's programs (plad infer), whose batch may be one drawing, grafts from the
+    # domain's own library too (graft_library.npz: sub-expressions of the programs search found for 2,000 training
+    # shapes): the shipped network's beam refined, batches of 25, 0.885 -> 0.819 (0.14 -> 0.24 s); of 1, 0.882 ->
+    # 0.818 (docs/inference.md). The search levels graft from the batch only, so the stages that search need no
+    # library file (with it: fast 0.839, default 0.786)
     search_defaults = {"insertions": 7, "refine": {"rounds": 1, "graft": 15}}
-    refine_defaults = {"graft": 15}
+    refine_defaults = {"graft": 15, "graft_library": "shipped"}
     # effort levels (100 evenly spaced CAD test shapes, one thread, CPU s per shape; docs/inference.md): fast is
     # the greedy search above (0.964, 0.13 s); default a beam of 2 over left-deep chains with every operator,
     # its 2 best finds refined (0.851, 0.28 s; a beam of 3: 0.833, 0.37 s, too close to the 10 minutes that all
