@@ -1,7 +1,7 @@
 """Build a grafting library (:mod:`plad.rewrite.graft`): search programs for evenly spaced training shapes and
 keep every sub-expression, one per distinct execution, as SIRI's cache of P_BEST's sub-expressions.
 
-``python -m plad.rewrite.graft_library csg2d --prepared data/prepared`` writes the domain's shipped library
+``python -m plad.rewrite.graft_library DOMAIN --prepared data/prepared`` writes the domain's own library
 (``plad/domains/<domain>/graft_library.npz``, package data), which ``refine.graft_library: shipped`` grafts from.
 """
 from __future__ import annotations

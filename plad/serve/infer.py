@@ -133,9 +133,9 @@ def refinement(domain: Domain, effort: str = "default") -> Refinement:
       (``search_config(domain, effort="fast").refine``; 2D CSG: one round; the domains that have not measured
       their levels: no rounds, the network's beam alone);
     * ``default``: the best-of-beam program, refined by :class:`~plad.rewrite.RefineConfig` ``()`` (3 rounds)
-      with the domain's ``refine_defaults`` (ShapeAssembly: removal of parts); what ``plad infer`` did before
-      the levels existed, but for those. Not ``search_config(domain).refine``, which is less
-      work (2D and 3D CSG: one round; ShapeAssembly also fewer, narrower PO sweeps and no insertion);
+      with the domain's ``refine_defaults`` (ShapeAssembly: removal of parts; 2D CSG: grafting, from its library
+      too); what ``plad infer`` did before the levels existed, but for those. Not ``search_config(domain).refine``,
+      which is less work (2D and 3D CSG: one round; ShapeAssembly also fewer, narrower PO sweeps and no insertion);
     * ``best``: every candidate of the beam, each refined as for ``default``, the best kept per shape. Not
       ``search_config(domain, effort="best").refine`` either: no domain's is more work than ``RefineConfig()``
       (2D CSG: one round), so ``best`` would refine its best-of-beam program less than ``default`` does.

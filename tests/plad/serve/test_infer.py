@@ -176,8 +176,10 @@ def test_refining_every_beam_candidate_is_never_worse_than_the_best_of_beam_only
     from plad.shipped import shipped_model
 
     domain = get_domain("csg2d")
-    assert refinement(domain) == Refinement(RefineConfig())          # default: what infer always did
-    assert refinement(domain, "best") == Refinement(RefineConfig(), all_candidates=True)
+    # default: what infer always did, grafting from the domain's library since it has one
+    grafting = RefineConfig(graft=15, graft_library="shipped")
+    assert refinement(domain) == Refinement(grafting)
+    assert refinement(domain, "best") == Refinement(grafting, all_candidates=True)
     assert refinement(domain, "fast") == Refinement(search_config(domain, effort="fast").refine)
     # a domain's refine_defaults: ShapeAssembly removes parts (a tree domain prunes instead)
     sa = get_domain("shapeassembly")
