@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.domains.space import Candidates, Node
+from plad.domains.space import Node
 from plad.rewrite.evaluate import Scorer
-from plad.rewrite.insert import take_best
+from plad.rewrite.insert import improve_repeatedly
 
 #: SIRI: the 15 nearest cached sub-expressions per node, at most 10 rewrites per program
 NEAREST = 15
@@ -72,6 +72,16 @@ def desired(space, program: Sequence[int], nodes: list[Node], outputs: torch.Ten
         else:
             raise ValueError(f"grafting: operator {op!r} of node {i}: expected union, intersection or difference")
     return want, care
+
+
+def _execute(domain, programs: Sequence[Sequence[int]], chunk: int = 4096) -> torch.Tensor:
+    """Executions (N, *shape) bool of valid programs, ``chunk`` at a time (a library may hold many)."""
+    from plad.domains.base import pad_programs
+
+    if not programs:
+        return torch.zeros(0, *domain.shape, dtype=torch.bool)
+    return torch.cat([domain.execute(pad_programs(programs[s:s + chunk])).bool()
+                      for s in range(0, len(programs), chunk)])
 
 
 @dataclass
@@ -126,11 +136,7 @@ class Library:
                 domain.check(p)
             except Exception as err:
                 raise ValueError(f"{path}: program {i} is not a valid {domain.name} program: {err}") from None
-        from plad.domains.base import pad_programs
-
-        outputs = torch.cat([domain.execute(pad_programs(programs[s:s + 4096]))
-                             for s in range(0, len(programs), 4096)]) if programs else torch.zeros(0, *domain.shape)
-        return Library.build(programs, outputs.bool())
+        return Library.build(programs, _execute(domain, programs))
 
     def dense(self) -> torch.Tensor:
         """The executions as float32 (M, D), made once per library (a loaded library is kept per process, so
@@ -226,56 +232,43 @@ def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: in
     ``extra`` (e.g. a library shipped with the model: :func:`load_library`).
     """
     space = scorer.space
-    programs = [list(p) for p in programs]
-    values = values.clone()
-    todo = [i for i, p in enumerate(programs) if p]
-    kept = 0
-    for _ in range(rewrites):
-        trees, subprograms, spans, outputs = _trees(scorer, programs, todo)
+
+    def propose(current: list[list[int]], rows: list[int]) -> tuple[list[list[int]], list[int]]:
+        nonlocal library
+        trees, subprograms, spans, outputs = _trees(scorer, current, rows)
         if not trees:
-            break
-        if library is None:
+            return [], []
+        if library is None:   # the programs as they are on entry
             library = Library.build(subprograms, outputs)
         libraries = [library] if extra is None else [library, extra]
         entries = [p for lib in libraries for p in lib.programs]
         if not entries:
-            break
+            return [], []
         wants, cares, where = [], [], []
         for i, nodes in trees.items():
             a, b = spans[i]
-            want, care = desired(space, programs[i], nodes, outputs[a:b], scorer.targets[i])
+            want, care = desired(space, current[i], nodes, outputs[a:b], scorer.targets[i])
             wants.append(want)
             cares.append(care)
             where += [(i, n) for n in range(len(nodes))]
         near = nearest(libraries, torch.cat(wants), torch.cat(cares), k)
         cands, owner = [], []
         for (i, n), hits in zip(where, near.tolist()):
-            node = trees[i][n]
             for h in hits:
-                new = space.splice(programs[i], node, entries[h])
-                if len(new) <= space.max_len and new != programs[i]:
+                new = space.splice(current[i], trees[i][n], entries[h])
+                if len(new) <= space.max_len and new != current[i]:
                     cands.append(new)
                     owner.append(i)
-        if not cands:
-            break
-        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(cands, owner))
-        todo = torch.nonzero(taken).flatten().tolist()
-        kept += len(todo)
-        if not todo:
-            break
-    scorer.stats.accepted("graft", kept)
-    return programs, values
+        return cands, owner
+
+    return improve_repeatedly(scorer, programs, values, propose, rewrites, "graft")
 
 
 def sub_expressions(domain, programs: Sequence[Sequence[int]]) -> Library:
     """The library of every sub-expression of ``programs`` (e.g. programs found for training shapes)."""
     space = domain.rewrite
     subprograms = [space.standalone(p, node) for p in programs if p for node in space.nodes(p)]
-    from plad.domains.base import pad_programs
-
-    outputs = torch.cat([domain.execute(pad_programs(subprograms[s:s + 4096])).bool()
-                         for s in range(0, len(subprograms), 4096)]) if subprograms else torch.zeros(0, *domain.shape)
-    return Library.build(subprograms, outputs.bool())
+    return Library.build(subprograms, _execute(domain, subprograms))
 
 
 __all__ = ["NEAREST", "REWRITES", "SHIPPED", "Library", "desired", "graft", "library_path",

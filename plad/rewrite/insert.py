@@ -61,6 +61,28 @@ def take_best(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, c
     return programs, values, taken
 
 
+def improve_repeatedly(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, propose, rounds: int,
+                       name: str) -> tuple[list[list[int]], torch.Tensor]:
+    """Rounds of: ``propose(programs, rows)`` -> (candidate programs, the index of the program each comes from),
+    each program's best taken where it improves (:func:`take_best`); the next round proposes for the programs
+    that changed, until none does or ``rounds`` are done. Counts the changes as ``name``; never worse."""
+    programs = [list(p) for p in programs]
+    values = values.clone()
+    todo = [i for i, p in enumerate(programs) if p]
+    kept = 0
+    for _ in range(rounds):
+        cands, owner = propose(programs, todo)
+        if not cands:
+            break
+        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(cands, owner))
+        todo = torch.nonzero(taken).flatten().tolist()
+        kept += len(todo)
+        if not todo:
+            break
+    scorer.stats.accepted(name, kept)
+    return programs, values
+
+
 def keep_tuned(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, new: list[list[int]],
                new_values: torch.Tensor, tried: torch.Tensor, sweeps: int, wide: bool,
                deadline: float | None = None) -> tuple[list[list[int]], torch.Tensor, torch.Tensor]:

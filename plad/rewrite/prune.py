@@ -33,7 +33,7 @@ import torch
 
 from plad.domains.space import Candidates, Node
 from plad.rewrite.evaluate import Scorer, improves, oriented
-from plad.rewrite.insert import take_best
+from plad.rewrite.insert import improve_repeatedly, take_best
 from plad.rewrite.po import optimize
 
 #: SIRI's tolerances of the top-down rule (absolute, relative to the best sub-tree's value)
@@ -152,21 +152,9 @@ def remove(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_
     """Removal of one primitive at a time (the domain's :meth:`removals`), each program's best removal kept
     where it improves (metric, then fewer tokens), repeated until none does; returns (programs, values),
     never worse."""
-    programs = [list(p) for p in programs]
-    values = values.clone()
-    todo = [i for i, p in enumerate(programs) if p]
-    kept = 0
-    for _ in range(max_rounds):
-        shorter, owner = removal_candidates(scorer.space, programs, todo)
-        if not shorter:
-            break
-        programs, values, taken = take_best(scorer, programs, values, Candidates.from_lists(shorter, owner))
-        todo = torch.nonzero(taken).flatten().tolist()
-        kept += len(todo)
-        if not todo:
-            break
-    scorer.stats.accepted("remove", kept)
-    return programs, values
+    return improve_repeatedly(scorer, programs, values,
+                              lambda current, rows: removal_candidates(scorer.space, current, rows), max_rounds,
+                              "remove")
 
 
 def eliminate(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, max_len: int, sweeps: int = 3,
