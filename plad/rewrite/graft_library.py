@@ -46,7 +46,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     torch.set_num_threads(1)
     began = time.process_time()
     try:
-        config = search_config(domain, effort=args.effort)
+        # the batch's programs only, never a library already shipped: the file is a function of the shapes and
+        # the effort level, not of an earlier version of itself
+        config = search_config(domain, effort=args.effort, **{"refine.graft_library": None})
     except ConfigError as err:
         raise SystemExit(str(err)) from None
     result = search(domain, torch.from_numpy(shapes).bool(), config)

@@ -183,3 +183,27 @@ def test_the_library_command_writes_what_a_refinement_loads(tmp_path, capsys):
         graft_library.main(["shapeassembly", "--prepared", str(tmp_path)])
     with pytest.raises(SystemExit, match="no such prepared dataset"):
         graft_library.main(["csg3d", "--prepared", str(tmp_path)])
+
+
+def test_2d_search_levels_graft_from_the_shipped_library_and_the_builder_from_its_batch_only(tmp_path, monkeypatch):
+    from plad.rewrite import driver, graft_library
+
+    domain = get_domain("csg2d")
+    for effort in ("fast", "default", "best"):
+        config = search_config(domain, effort=effort)
+        assert (config.refine.graft, config.refine.graft_library) == (15, "shipped")
+    # the builder's search must not read the file it is about to replace
+    seen = []
+    real = driver.search
+
+    def spy(domain, targets, config, **kw):
+        seen.append(config.refine.graft_library)
+        return real(domain, targets, config, **kw)
+
+    monkeypatch.setattr(driver, "search", spy)
+    from plad.data.files import write_prepared
+
+    shapes = _execute(domain, [domain.parse("s(24,24,8)c(40,40,12)+$")])
+    write_prepared("csg2d", domain.shape, {"train": shapes.numpy()}, tmp_path / "csg2d.npz", tmp_path / "csg2d.json")
+    graft_library.main(["csg2d", "--prepared", str(tmp_path), "--spaced", "1", "--out", str(tmp_path / "lib.npz")])
+    assert seen == [None]
