@@ -73,6 +73,14 @@ def shapes_seen(history: Path, epochs: list[float]) -> list[float] | None:
     return out
 
 
+def lower_is_better(column: str) -> bool:
+    """Whether a history column's metric (``real_val_<metric>``, ``val_<metric>``) improves downwards."""
+    from plad.metrics import IOU, chamfer_metric
+
+    name = column.rsplit("_", 1)[-1]
+    return any(m.name == name and not m.higher_is_better for m in (IOU, chamfer_metric()))
+
+
 X_LABELS = {"hours": "training hours (one CPU thread; a GPU segment its own hours)",
             "shapes": "synthetic shapes seen (millions)"}
 
@@ -125,7 +133,9 @@ def main(argv: list[str] | None = None) -> int:
         for label, path in runs.items():
             c = curve(path)
             values = c.get(args.metric, [float("nan")] * len(c["epoch"]))
-            best = max(range(len(values)), key=lambda i: values[i] if values[i] == values[i] else -1e9)
+            # the best epoch by the metric's own direction (Chamfer: lowest); NaN epochs never win
+            sign = -1.0 if lower_is_better(args.metric) else 1.0
+            best = max(range(len(values)), key=lambda i: sign * values[i] if values[i] == values[i] else -math.inf)
             seen = f", {c['shapes'][-1]:.2f} M shapes" if "shapes" in c else ""
             print(f"{label}: {len(values)} epochs, {c['hours'][-1]:.2f} h{seen}; best {args.metric} {values[best]:.4f} "
                   f"at epoch {c['epoch'][best]:.0f} ({c['hours'][best]:.2f} h)")

@@ -54,3 +54,11 @@ def test_shapes_axis_without_provenance_is_one_line(tmp_path, capsys):
     assert main(["-o", str(tmp_path / "out.png"), "--x", "shapes", f"r={h}"]) == 1
     assert "no provenance.json beside it" in capsys.readouterr().err
     assert not (tmp_path / "out.png").exists()
+
+
+def test_the_best_epoch_of_a_lower_is_better_metric_is_its_lowest(tmp_path, capsys):
+    h = tmp_path / "h.csv"
+    h.write_text("epoch,val_chamfer,real_val_chamfer,epoch_seconds\n"
+                 "1,9.0,8.5,1800\n2,2.0,3.1,1800\n3,1.5,,1800\n4,1.0,2.9,1800\n5,1.1,3.0,1800\n")
+    assert main(["-o", str(tmp_path / "out.png"), "--metric", "real_val_chamfer", f"2D={h}"]) == 0
+    assert capsys.readouterr().out == "2D: 5 epochs, 2.50 h; best real_val_chamfer 2.9000 at epoch 4 (2.00 h)\n"
