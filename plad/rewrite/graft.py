@@ -232,16 +232,18 @@ def graft(scorer: Scorer, programs: list[list[int]], values: torch.Tensor, k: in
     ``extra`` (e.g. a library shipped with the model: :func:`load_library`).
     """
     space = scorer.space
+    libraries: list[Library] = []   # fixed by the first round: the libraries, and their entries one after another
+    entries: list[list[int]] = []
 
     def propose(current: list[list[int]], rows: list[int]) -> tuple[list[list[int]], list[int]]:
-        nonlocal library
         trees, subprograms, spans, outputs = _trees(scorer, current, rows)
         if not trees:
             return [], []
-        if library is None:   # the programs as they are on entry
-            library = Library.build(subprograms, outputs)
-        libraries = [library] if extra is None else [library, extra]
-        entries = [p for lib in libraries for p in lib.programs]
+        if not libraries:   # None: the programs as they are on entry
+            libraries.append(Library.build(subprograms, outputs) if library is None else library)
+            if extra is not None:
+                libraries.append(extra)
+            entries.extend(p for lib in libraries for p in lib.programs)
         if not entries:
             return [], []
         wants, cares, where = [], [], []
