@@ -27,7 +27,7 @@ import torch
 
 from plad.rewrite.beam import beam_search
 from plad.rewrite.evaluate import Scorer, Stats, improves
-from plad.rewrite.graft import graft, library_path, load_library
+from plad.rewrite.graft import graft, load_library
 from plad.rewrite.insert import insert_tuned
 from plad.rewrite.po import optimize
 from plad.rewrite.prune import TOLERANCE, eliminate, prune, remove
@@ -193,7 +193,7 @@ def check_refine(domain: Domain, cfg: RefineConfig) -> None:
         raise ValueError(f"refine.graft = {cfg.graft}: the {domain.name} domain has no expression tree of boolean "
                          f"operators to graft into; set it to 0")
     if cfg.graft and cfg.graft_library is not None:
-        library_path(domain, cfg.graft_library)
+        load_library(domain, cfg.graft_library)   # a missing or corrupt file: one line now, not mid-search
 
 
 def _confirm(scorer: Scorer, programs: list[list[int]], values: torch.Tensor) -> torch.Tensor:

@@ -18,6 +18,7 @@ improved are grafted again, up to ``rewrites`` times.
 """
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -123,8 +124,10 @@ class Library:
     def load(path: str | Path, domain) -> Library:
         """A library written by :meth:`save` for ``domain``; ValueError naming the file if it is not one."""
         path = Path(path)
+        if not zipfile.is_zipfile(path):
+            raise ValueError(f"{path}: not a grafting library (not an .npz archive)")
         try:
-            with np.load(path) as f:
+            with np.load(path, allow_pickle=False) as f:
                 tokens, name = f["tokens"], str(f["domain"])
         except (OSError, KeyError, ValueError) as err:
             raise ValueError(f"{path}: not a grafting library ({err})") from None

@@ -153,6 +153,8 @@ def test_a_bad_library_is_a_one_line_error_naming_the_file(tmp_path):
     garbage.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=f"{garbage}: not a grafting library"):
         Library.load(garbage, csg2d)
+    with pytest.raises(ConfigError, match=f"{garbage}: not a grafting library"):   # at configuration, not mid-search
+        search_config(csg2d, **{"refine.graft_library": str(garbage)})
     with pytest.raises(ConfigError, match="graft_library = nowhere.npz: no such file"):
         search_config(csg2d, **{"refine.graft_library": "nowhere.npz"})
     with pytest.raises(ConfigError, match="csg3d ships no grafting library"):
