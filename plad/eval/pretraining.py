@@ -73,12 +73,15 @@ def shapes_seen(history: Path, epochs: list[float]) -> list[float] | None:
     return out
 
 
-def lower_is_better(column: str) -> bool:
-    """Whether a history column's metric (``real_val_<metric>``, ``val_<metric>``) improves downwards."""
+def best_epoch(column: str, values: list[float]) -> int:
+    """The index of a history column's best value (``real_val_<metric>``, ``val_<metric>``) in its metric's
+    direction (Chamfer: lowest; another column: highest); NaN epochs never win, the first wins ties."""
     from plad.metrics import IOU, chamfer_metric
 
     name = column.rsplit("_", 1)[-1]
-    return any(m.name == name and not m.higher_is_better for m in (IOU, chamfer_metric()))
+    metric = next((m for m in (IOU, chamfer_metric()) if m.name == name), IOU)
+    best = metric.best_value(values)
+    return 0 if best is None else values.index(best)
 
 
 X_LABELS = {"hours": "training hours (one CPU thread; a GPU segment its own hours)",
@@ -133,9 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         for label, path in runs.items():
             c = curve(path)
             values = c.get(args.metric, [float("nan")] * len(c["epoch"]))
-            # the best epoch by the metric's own direction (Chamfer: lowest); NaN epochs never win
-            sign = -1.0 if lower_is_better(args.metric) else 1.0
-            best = max(range(len(values)), key=lambda i: sign * values[i] if values[i] == values[i] else -math.inf)
+            best = best_epoch(args.metric, values)
             seen = f", {c['shapes'][-1]:.2f} M shapes" if "shapes" in c else ""
             print(f"{label}: {len(values)} epochs, {c['hours'][-1]:.2f} h{seen}; best {args.metric} {values[best]:.4f} "
                   f"at epoch {c['epoch'][best]:.0f} ({c['hours'][best]:.2f} h)")
