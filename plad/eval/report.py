@@ -59,6 +59,7 @@ class MethodResult:
     val_best: float | None = None                     # validation metric of the selected model
     rounds: int | None = None
     stopped: str | None = None
+    train_shapes: int | None = None                   # real shapes the fine-tuning trained on
     #: a wall-clock limit shaped the number (its training's or its evaluation's); None: not known
     stopped_by_time: bool | None = None
 
@@ -78,6 +79,7 @@ def from_files(domain: str, keys: list[str], layout: Layout) -> list[MethodResul
             s = upgrade_summary(json.loads(summary.read_text()))
             res.stopped, res.train_seconds = s.get("stopped"), s.get("train_seconds")
             res.rounds, res.val_best = s.get("units"), s.get("val")
+            res.train_shapes = s.get("train_shapes")
         res.stopped_by_time = number_record(domain, key, layout).stopped_by_time
         out.append(res)
     return out
@@ -137,6 +139,7 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
             res.train_seconds = m.get("train_seconds")
             m = upgrade_summary({**m, "metric": metric})   # runs logged by older versions
             res.rounds = int(m["units"]) if "units" in m else None
+            res.train_shapes = int(m["train_shapes"]) if "train_shapes" in m else None
             res.stopped = ft.tags.get("plad.stopped")
             timed = ft.tags.get("plad.stopped_by_time")
             res.stopped_by_time = timed == "True" if timed is not None else res.stopped == "budget"
@@ -433,7 +436,7 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
         lines += ["", f"{OTHER_COMMIT}: a number from another commit than its column's; {BY_TIME}: stopped by time, "
                   f"a wall-clock limit shaped it (\"Where the numbers come from\", below)."]
     lines += ["", "## Fine-tuning runs", "",
-              "| method | " + " | ".join(f"{_title(d)}: minutes, rounds (RL: epochs), stop"
+              "| method | " + " | ".join(f"{_title(d)}: minutes, rounds (RL: epochs), training shapes, stop"
                                         for d in domains) + " |",
               "|---|" + "---|" * len(domains)]
     for key in [m for m in methods if m != "sp"] + [v for v in per_round.values() if v not in methods]:
@@ -444,7 +447,8 @@ def table_markdown(results: dict[str, list[MethodResult]], methods: list[str], p
                 cells.append("—")
             else:
                 stop = f"{BY_TIME} stopped by time" if r.stopped_by_time else r.stopped
-                cells.append(f"{r.train_seconds / 60:.1f} min, {r.rounds}, {stop}")
+                shapes = "—" if r.train_shapes is None else f"{r.train_shapes:,}"
+                cells.append(f"{r.train_seconds / 60:.1f} min, {r.rounds}, {shapes}, {stop}")
         lines.append(f"| {label(key)} | " + " | ".join(cells) + " |")
     if per_round:
         lines += ["", "## P_BEST: all-time vs per-round (supplement)", ""]

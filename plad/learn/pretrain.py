@@ -318,10 +318,16 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
                    # a continued run resumes only from a last.pt that continued the same checkpoint the same way
                    **({"init": sha256_file(init_path), "continue_lr": cfg.continue_lr} if init_path else {})}
     last = out / LAST
-    if dist.is_main() and (not last.exists() or read_checkpoint(last).get("fingerprint") != fingerprint):
-        history.unlink(missing_ok=True)  # a fresh run: no stale epochs in the history
-        if init_payload is not None:   # a new segment: the history it continues comes first
-            for row in LoopState.from_dict(init_payload.get("loop") or init_payload["train_state"], "epoch").history:
+    if dist.is_main():
+        # history.csv is written again from the state the run starts from, never appended to as found: DVC
+        # deletes it before running the stage (a plot, not persisted) while last.pt persists, and a kill between
+        # last.pt's commit and the row's append leaves it a row short. The state: the last.pt a run resumes,
+        # else the checkpoint a new segment continues (its epochs come first), else none (a fresh run)
+        saved = read_checkpoint(last) if last.exists() else None
+        state = saved if saved is not None and saved.get("fingerprint") == fingerprint else init_payload
+        history.unlink(missing_ok=True)
+        if state is not None:
+            for row in LoopState.from_dict(state.get("loop") or state["train_state"], "epoch").history:
                 if row.get("unit", 0) > 0:
                     record(row["unit"], row, notify=False)
 

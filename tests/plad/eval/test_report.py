@@ -49,6 +49,7 @@ def test_each_column_names_its_commit_and_marks_numbers_from_another_or_stopped_
            {"stopped": "max_epochs", "stopped_by_time": False, "train_seconds": 600.0, "provenance": _prov(a, 30.0)})
     for key, commit, timed in [("lest_st", a, False), ("rl", b, True)]:
         _write(layout.finetune_summary("csg2d", key), {"units": 3, "stopped": "budget" if timed else "max_rounds",
+                                                        **({"train_shapes": 3000} if timed else {}),
                                                         "stopped_by_time": timed, "train_seconds": 300.0,
                                                         "provenance": _prov(commit, 310.0)})
     for key in ["sp", "lest_st", "rl"]:
@@ -70,7 +71,9 @@ def test_each_column_names_its_commit_and_marks_numbers_from_another_or_stopped_
             for line in table.split("## Fine-tuning")[0].splitlines() if line.startswith("| ")}
     assert rows["SP"] == "1.500" and rows["LEST+ST"] == "1.500" and rows["RL"] == "1.500*†"
     assert "*: a number from another commit than its column's; †: stopped by time" in table
-    assert "| RL | 5.0 min, 3, † stopped by time |" in table
+    # the training shapes of each run, where its summary records them (written before: none)
+    assert "| RL | 5.0 min, 3, 3,000, † stopped by time |" in table
+    assert "| LEST+ST | 5.0 min, 3, —, max_rounds |" in table
     section = columns_markdown({"csg2d": col}, ["sp", "rl", "lest_st"])
     cells = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in section.splitlines()
              if line.startswith("| ")}

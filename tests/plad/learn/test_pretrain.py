@@ -169,3 +169,26 @@ def test_init_of_another_network_domain_or_a_missing_file_is_one_line(programs, 
         pretrain(config(1, True, init=init), run_root(programs, tmp_path, "curr"))
     with pytest.raises(ConfigError, match="continue_lr"):
         pretrain(config(1, init=init, continue_lr="warm"), run_root(programs, tmp_path, "lr"))
+
+
+def test_a_resumed_run_writes_its_whole_history_again(programs, tmp_path):
+    """DVC deletes ``history.csv`` (a plot output) before it runs the stage and keeps ``last.pt`` (persisted):
+    the resumed run's history still holds every epoch, and a run with nothing left to do (a zero-epoch
+    continuation run again) writes it instead of failing on the missing file."""
+    whole, layout = run_root(programs, tmp_path, "whole"), run_root(programs, tmp_path, "run")
+    pretrain(config(3), whole)
+    pretrain(config(2), layout)
+    history = layout.pretrain_dir("csg2d") / HISTORY
+    history.unlink()
+    pretrain(config(3), layout)
+    rows = lambda layout: list(csv.DictReader((layout.pretrain_dir("csg2d") / HISTORY).open()))  # noqa: E731
+    assert [r["epoch"] for r in rows(layout)] == ["1", "2", "3"]
+    assert [r["train_loss"] for r in rows(layout)] == [r["train_loss"] for r in rows(whole)]
+
+    second = run_root(programs, tmp_path, "second")
+    init = str(whole.pretrain_dir("csg2d") / LAST)
+    pretrain(config(0, init=init), second)
+    first_rows = rows(second)
+    (second.pretrain_dir("csg2d") / HISTORY).unlink()
+    pretrain(config(0, init=init), second)
+    assert rows(second) == first_rows and [r["epoch"] for r in first_rows] == ["1", "2", "3"]
