@@ -28,6 +28,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], object], m
     return path
 
 
+def sha256_file(path: str | os.PathLike) -> str:
+    """The sha256 of a file's bytes, read in 1 MiB pieces (the one home of a file's hash)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def atomic_write_text(path: str | os.PathLike, text: str, mode: int = 0o644) -> Path:
     return atomic_write(path, lambda fh: fh.write(text.encode()), mode)
 

@@ -44,7 +44,7 @@ from typing import BinaryIO
 import numpy as np
 
 from plad.errors import RunFailure
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import atomic_write, atomic_write_text, sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -221,7 +221,7 @@ def _read_verified(spec: DatasetSpec, path: Path) -> dict[str, np.ndarray]:
         # read-only shared folder.
         data = _gunzip_verified(spec, path)
         return _read_hdf5(spec, path, data)
-    _check_sha256(spec, path, _sha256_file(path), what="sha256")
+    _check_sha256(spec, path, checked_sha256(path), what="sha256")
     return _read_hdf5(spec, path, path)
 
 
@@ -250,15 +250,12 @@ def _gunzip_verified(spec: DatasetSpec, path: Path) -> io.BytesIO:
     return out
 
 
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
+def checked_sha256(path: Path) -> str:
+    """:func:`plad.fsutil.sha256_file`, with a file that cannot be read as a one-line DataError."""
     try:
-        with open(path, "rb") as f:
-            while chunk := f.read(_CHUNK):
-                digest.update(chunk)
+        return sha256_file(path)
     except OSError as e:
         raise DataError(path, f"cannot read: {e.strerror or e}") from e
-    return digest.hexdigest()
 
 
 def _check_sha256(spec: DatasetSpec, path: Path | str, got: str, *, what: str, hint: str = "") -> None:
@@ -290,7 +287,7 @@ def verify_file(path: str | os.PathLike, sha256: str, name: str) -> Path:
         if magic != _GZIP_MAGIC:
             got = "an empty file" if not magic else f"starts with {magic!r}"
             raise DataError(path, f"not a readable .tar.gz: not gzip data ({got}); expected {name}'s file")
-    _sha256_matches(name, sha256, path, _sha256_file(path), what="sha256")
+    _sha256_matches(name, sha256, path, checked_sha256(path), what="sha256")
     return path
 
 

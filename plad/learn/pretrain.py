@@ -42,7 +42,7 @@ from plad.config import ConfigError
 from plad.data.batching import bucketed
 from plad.device import check_precision, resolve_device, resolve_precision
 from plad.domains.base import pad_programs
-from plad.fsutil import atomic_write_text
+from plad.fsutil import atomic_write_text, sha256_file
 from plad.layout import BEST, HISTORY, LAST, PROVENANCE, SUMMARY, Layout
 from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig
@@ -409,11 +409,3 @@ def synthetic_record(layout: Layout, domain: str, train_programs: int, checksum:
             "train_programs": train_programs, "checksum": checksum}
 
 
-def sha256_file(path: Path) -> str:
-    import hashlib
-
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

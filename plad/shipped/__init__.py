@@ -18,7 +18,6 @@ the shared one, and refuses (one line) a model re-shipped since its sidecar was 
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -28,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from plad.errors import RunFailure
+from plad.fsutil import sha256_file
 
 #: overrides the folder of shipped models (tests; a site that keeps its own)
 SHIPPED_ENV = "PLAD_SHIPPED_DIR"
@@ -86,14 +86,6 @@ class ShippedModel:
         if got != want.get("sha256"):
             raise ShipError(f"{self.checkpoint}: sha256 {got[:12]}... differs from its sidecar's "
                             f"{str(want.get('sha256'))[:12]}... (a damaged or replaced shipped model)")
-
-
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def shipped_model(domain: str, folder: Path | None = None) -> ShippedModel | None:

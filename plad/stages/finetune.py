@@ -130,13 +130,13 @@ def run_origin(cfg: FinetuneStageConfig, spec: MethodConfig, layout: Layout) -> 
     The run folder is a persisted DVC output (so that a killed run resumes), so DVC does not empty it when
     the pretrained model changes; this is what tells a resumable run from a stale one.
     """
-    from plad.data.files import _sha256_file
+    from plad.data.files import checked_sha256
     from plad.model.checkpoint import network_digest
 
     method = {k: v for k, v in asdict(spec).items() if k not in ("max_minutes", "max_rounds")}
     # the network, not the file's bytes: a pretraining run again writes the same weights with other seconds
     return {"model_network_sha256": network_digest(layout.model(cfg.domain)),
-            "data_sha256": _sha256_file(layout.prepared(cfg.domain)),
+            "data_sha256": checked_sha256(layout.prepared(cfg.domain)),
             "method": method, "seed": cfg.seed, "train_limit": cfg.train_limit, "val_limit": cfg.val_limit,
             "subset": "evenly spaced"}
 
