@@ -16,6 +16,7 @@ from __future__ import annotations
 import abc
 import os
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -28,6 +29,61 @@ from plad.domains.grammar import ProgramError, TokenTable
 from plad.metrics import Metric
 
 _NONE: Mapping[str, float] = MappingProxyType({})
+_NONE_EDITS: Mapping[str, Callable] = MappingProxyType({})
+
+
+#: a program edit of a domain (:meth:`Domain.edits`): (valid program, donor programs, rng) -> a valid program
+#: within the length cap, or None where it cannot
+Edit = Callable[[Sequence[int], Sequence[Sequence[int]], np.random.Generator], "list[int] | None"]
+
+
+@dataclass(frozen=True)
+class Symmetry:
+    """A symmetry of a domain's grammar (:meth:`Domain.symmetries`): a map of programs whose execution is
+    the original's transformed by a symmetry of the grid.
+
+    The grid transform is a signed permutation of the shape's axes: axis ``i`` of the transformed shape is
+    axis ``axes[i]`` of the original, reversed where ``flips[i]``. ``program`` maps a valid program to a
+    valid program of the same length, or returns None where the grammar cannot express the image (e.g. a
+    primitive that exists only upright, a parameter that leaves its range). Applying it :attr:`order` times
+    gives back the original program exactly.
+
+    ``exact``: every program it maps executes to exactly :meth:`grid` of the original's execution;
+    otherwise the rasterization makes that approximate (the domain's module says why and how much) and
+    ``mean_iou`` is the bound the tests hold the mean IoU between the two to, over sampled programs (one
+    program may have no bound: a one-pixel shift can erase a thin sliver).
+    """
+
+    name: str
+    program: Callable[[Sequence[int]], list[int] | None]
+    axes: tuple[int, ...]
+    flips: tuple[bool, ...]
+    exact: bool = True
+    mean_iou: float = 1.0
+
+    def grid(self, shapes):
+        """The grid transform of executions (..., *shape), a numpy array or a torch tensor (the same type)."""
+        k = len(self.axes)
+        lead = shapes.ndim - k
+        perm = list(range(lead)) + [lead + a for a in self.axes]
+        flipped = [lead + i for i, f in enumerate(self.flips) if f]
+        if isinstance(shapes, torch.Tensor):
+            out = shapes.permute(perm)
+            return out.flip(flipped) if flipped else out
+        out = np.transpose(shapes, perm)
+        return np.flip(out, flipped) if flipped else out
+
+    @property
+    def order(self) -> int:
+        """The least n > 0 with the grid transform applied n times the identity (2: an involution, 4: a
+        quarter turn)."""
+        axes, flips = tuple(range(len(self.axes))), (False,) * len(self.axes)
+        for n in range(1, 2 * len(self.axes) + 1):
+            axes, flips = (tuple(axes[a] for a in self.axes),
+                           tuple(flips[a] != f for a, f in zip(self.axes, self.flips)))
+            if axes == tuple(range(len(axes))) and not any(flips):
+                return n
+        raise AssertionError("a signed permutation has finite order")
 
 
 class Domain(abc.ABC):
@@ -110,6 +166,17 @@ class Domain(abc.ABC):
         makes a program longer. Default: the program itself (the domain has no such choices).
         """
         return list(ids)
+
+    # -- augmentation (optional) ---------------------------------------------------------------
+    def symmetries(self) -> tuple[Symmetry, ...]:
+        """The exact symmetries of the grammar (:class:`Symmetry`), without the identity, for the
+        augmented streams of :mod:`plad.learn.augment`. Default: none."""
+        return ()
+
+    def edits(self) -> Mapping[str, Edit]:
+        """Program edits of the domain's own for :mod:`plad.learn.augment`, by name; one named like a
+        generic edit (``jitter``, ``drop``, ``graft``, which use :attr:`rewrite`) replaces it. Default: none."""
+        return _NONE_EDITS
 
     # -- floor baseline (optional) ------------------------------------------------------------
     #: what :meth:`floor` infers, for the results table, e.g. ``"one box"``; "": the domain has no floor
@@ -260,4 +327,4 @@ def split_padding(programs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return programs.clamp(min=0), (programs >= 0).sum(1)
 
 
-__all__ = ["Domain", "ProgramError", "pad_programs", "save_grid", "split_padding"]
+__all__ = ["Domain", "Edit", "ProgramError", "Symmetry", "pad_programs", "save_grid", "split_padding"]

@@ -69,6 +69,13 @@ class CSG2D(Domain):
 
         return canonical_program(ids)
 
+    def symmetries(self):
+        """The flips and quarter turns of the canvas the vocabulary can draw (:mod:`.symmetry`): ``flip_lr``
+        for every program, the other six for programs without triangles (drawn apex-up only)."""
+        from plad.domains.csg2d.symmetry import symmetries
+
+        return symmetries()
+
     floor_name = "one primitive"
 
     def floor(self, targets: np.ndarray) -> list[list[int]]:

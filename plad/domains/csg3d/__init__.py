@@ -86,6 +86,13 @@ class CSG3D(Domain):
 
         return canonical_program(ids)
 
+    def symmetries(self):
+        """Quarter turns about the vertical y axis and mirrors through vertical planes, all exact
+        (:mod:`.symmetry`)."""
+        from plad.domains.csg3d.symmetry import symmetries
+
+        return symmetries()
+
     floor_name = "one box"
 
     def floor(self, targets: np.ndarray) -> list[list[int]]:

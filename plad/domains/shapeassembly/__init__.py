@@ -125,6 +125,19 @@ class ShapeAssembly(Domain):
     # order, and every number moves or sizes a cuboid and so places what is attached to it: numbers that
     # draw the same voxels do so only in context (docs/shapeassembly.md, "The discretized language of the domain").
 
+    def symmetries(self):
+        """The mirrors through the bbox's vertical centre planes and their composition, a half turn
+        (:mod:`.symmetry`); exact up to float32 rounding at voxel boundaries."""
+        from plad.domains.shapeassembly.symmetry import symmetries
+
+        return symmetries()
+
+    def edits(self):
+        """Grafting a whole part of another program (:mod:`.edits`): the language has no expression tree."""
+        from plad.domains.shapeassembly.edits import graft
+
+        return {"graft": graft}
+
     floor_name = "one box"
 
     def floor(self, targets: np.ndarray) -> list[list[int]]:
