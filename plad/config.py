@@ -41,11 +41,12 @@ class ConfigError(RunFailure, ValueError):
 #: Top-level keys dvc.yaml reads itself (stage names and files); a profile cannot change them.
 PIPELINE_KEYS = ("profile", "domains", "methods", "beams")
 #: One section per DVC stage (and the Prefect flows').
-STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "search_only", "finetune", "report", "flows")
+STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "search_only", "label", "teach", "finetune",
+                  "report", "flows")
 #: Top-level keys a params file may have.
 SECTIONS = {*PIPELINE_KEYS, *STAGE_SECTIONS}
 #: Sections with a ``base`` block and one block per domain (DVC stages ``<stage>@<domain>``).
-PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "search_only", "finetune")
+PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "search_only", "label", "teach", "finetune")
 BASE = "base"
 #: Top-level keys handed to a section as its keys of the same name (their one home is the top level).
 INJECTED = {"prepare": ("domains",), "report": ("domains", "profile", "beams")}

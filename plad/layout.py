@@ -8,6 +8,8 @@ hold no paths. ``dvc.yaml`` has to spell the same paths literally, and
     data/prepared/<domain>.npz, <domain>.json    real target shapes (stage prepare; plus each
                                                  target source's own files, e.g. partnet_voxels.npz)
     data/synthetic/<domain>.npz, <domain>.json   synthetic pretraining programs (synthesize@<domain>)
+    data/labels/<domain>.npz, <domain>.json      search labels of the real training shapes (label@<domain>;
+                                                 resumable chunks in <domain>.parts/)
     runs/pretrain/<domain>/                      pretraining: best.pt, last.pt, history.csv, summary.json
     runs/finetune/<domain>/<method>/             fine-tuning: best.pt, state.json, summary.json, method state
     results/finetune/<domain>/<method>.json      the fine-tuning summary again, as a DVC metric
@@ -107,6 +109,14 @@ class Layout:
 
     def synthetic_summary(self, domain: str) -> Path:
         return self.synthetic_dir / f"{domain}.json"
+
+    @property
+    def labels_dir(self) -> Path:
+        """Search labels of the real training shapes (stage ``label@<domain>``): ``<domain>.npz``, ``.json``."""
+        return self._start / "data" / "labels"
+
+    def labels(self, domain: str) -> Path:
+        return self.labels_dir / f"{domain}.npz"
 
     # -- training runs ----------------------------------------------------------------------------
     def pretrain_dir(self, domain: str) -> Path:

@@ -43,7 +43,17 @@ from plad.fsutil import atomic_write
 from plad.learn import distributed as dist
 from plad.learn.methods import PBestSearchConfig
 from plad.learn.pbest import PBest
-from plad.rewrite.pool import Chunk, ChunkResult, refine_config, run_chunks, split
+from plad.rewrite.pool import (
+    Chunk,
+    chunk_file,
+    pad_programs,
+    read_chunk,
+    refine_config,
+    run_chunks,
+    split,
+    unpad_programs,
+    write_chunk,
+)
 
 SEARCH_DIR = "search"
 PLAN = "plan.npz"
@@ -72,40 +82,6 @@ def check(cfg: PBestSearchConfig, domain, where: str) -> None:
             build(getattr(cfg, name))
         except (ConfigError, TypeError, ValueError) as err:
             raise ConfigError(f"{where}.{name}: {err}") from None
-
-
-# -- chunk files ------------------------------------------------------------------------------------
-def _chunk_file(folder: Path, i: int) -> Path:
-    return folder / f"chunk_{i:05d}.npz"
-
-
-def _pad(programs: list[list[int]], width: int) -> np.ndarray:
-    out = np.full((len(programs), width), -1, dtype=np.int16)
-    for k, p in enumerate(programs):
-        out[k, : len(p)] = p
-    return out
-
-
-def _unpad(rows: np.ndarray) -> list[list[int]]:
-    return [r[r >= 0].tolist() for r in rows]
-
-
-def write_chunk(path: Path, r: ChunkResult, width: int) -> None:
-    buf = io.BytesIO()
-    np.savez_compressed(buf, index=r.index, programs=_pad(r.programs, width), values=r.values, before=r.before,
-                        executions=np.packbits(r.executions.reshape(len(r.index), -1), axis=1),
-                        seconds=np.asarray(r.seconds), stopped_by_time=np.asarray(r.stopped_by_time))
-    atomic_write(path, lambda fh: fh.write(buf.getvalue()))
-
-
-def read_chunk(path: Path, shape: tuple[int, ...]) -> ChunkResult:
-    with np.load(path) as z:
-        n = len(z["index"])
-        executions = np.unpackbits(z["executions"], axis=1, count=int(np.prod(shape))).astype(bool)
-        # chunk files written before the flag existed: not known to be cut short
-        timed = bool(z["stopped_by_time"]) if "stopped_by_time" in z.files else False
-        return ChunkResult(z["index"].copy(), _unpad(z["programs"]), z["values"].copy(),
-                           executions.reshape(n, *shape), z["before"].copy(), float(z["seconds"]), timed)
 
 
 @dataclass
@@ -168,13 +144,13 @@ class PBestSearch:
         plan_file = folder / PLAN
         if dist.broadcast(plan_file.exists()):   # a resumed round rewrites the very entries it chose before
             with np.load(plan_file) as z:
-                index, starts = z["index"].copy(), _unpad(z["programs"])
+                index, starts = z["index"].copy(), unpad_programs(z["programs"])
         else:
             index = self.rewrite_plan(pbest, rnd)
             starts = [pbest.program(int(i)) for i in index]
             if dist.is_main():
                 buf = io.BytesIO()
-                np.savez_compressed(buf, index=index, programs=_pad(starts, pbest.programs.shape[1]))
+                np.savez_compressed(buf, index=index, programs=pad_programs(starts, pbest.programs.shape[1]))
                 atomic_write(plan_file, lambda fh: fh.write(buf.getvalue()))
         chunks = [Chunk(index[c], shapes[index[c]], [starts[j] for j in c]) for c in split(len(index), self.cfg.chunk)]
         return self._step(folder, "refine", chunks, self.cfg.rewrite_config, self.cfg.rewrite_minutes, pbest,
@@ -204,8 +180,8 @@ class PBestSearch:
         if not dist.is_main():   # rank 0 searches; every rank applies the same results
             return dist.broadcast(None)
         shape = tuple(self.domain.shape)
-        done = {i: read_chunk(_chunk_file(folder, i), shape) for i in range(len(chunks))
-                if _chunk_file(folder, i).exists()}
+        done = {i: read_chunk(chunk_file(folder, i), shape) for i in range(len(chunks))
+                if chunk_file(folder, i).exists()}
         todo = [i for i in range(len(chunks)) if i not in done]
         resumed = len(done)
         # the step's budget shared by its chunks: W workers each run about len/W chunks in turn
@@ -213,7 +189,7 @@ class PBestSearch:
         by_first = {int(chunks[i].index[0]): i for i in todo}
         for r in run_chunks(self.domain.name, kind, [chunks[i] for i in todo], overrides, self.cfg.workers, limit):
             i = by_first[int(r.index[0])]
-            write_chunk(_chunk_file(folder, i), r, width)
+            write_chunk(chunk_file(folder, i), r, width)
             done[i] = r
         out = [done[i] for i in range(len(chunks))]
         out.append(resumed)

@@ -12,14 +12,18 @@ so it pickles cheaply.
 """
 from __future__ import annotations
 
+import io
 import multiprocessing
 import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from plad.fsutil import atomic_write
 
 #: what a chunk does: search from scratch, or refine given programs
 KINDS = ("search", "refine")
@@ -139,6 +143,41 @@ def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[
             os.environ["OMP_NUM_THREADS"] = old
     with pool:
         yield from pool.imap_unordered(_run, jobs)
+
+
+# -- chunk files: a finished chunk on disk, so that a killed run redoes only unfinished chunks --------------
+def chunk_file(folder: Path, i: int) -> Path:
+    """The file of chunk ``i`` in ``folder``."""
+    return folder / f"chunk_{i:05d}.npz"
+
+
+def pad_programs(programs: list[list[int]], width: int) -> np.ndarray:
+    out = np.full((len(programs), width), -1, dtype=np.int16)
+    for k, p in enumerate(programs):
+        out[k, : len(p)] = p
+    return out
+
+
+def unpad_programs(rows: np.ndarray) -> list[list[int]]:
+    return [r[r >= 0].tolist() for r in rows]
+
+
+def write_chunk(path: Path, r: ChunkResult, width: int) -> None:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, index=r.index, programs=pad_programs(r.programs, width), values=r.values, before=r.before,
+                        executions=np.packbits(r.executions.reshape(len(r.index), -1), axis=1),
+                        seconds=np.asarray(r.seconds), stopped_by_time=np.asarray(r.stopped_by_time))
+    atomic_write(path, lambda fh: fh.write(buf.getvalue()))
+
+
+def read_chunk(path: Path, shape: tuple[int, ...]) -> ChunkResult:
+    with np.load(path) as z:
+        n = len(z["index"])
+        executions = np.unpackbits(z["executions"], axis=1, count=int(np.prod(shape))).astype(bool)
+        # chunk files written before the flag existed: not known to be cut short
+        timed = bool(z["stopped_by_time"]) if "stopped_by_time" in z.files else False
+        return ChunkResult(z["index"].copy(), unpad_programs(z["programs"]), z["values"].copy(),
+                           executions.reshape(n, *shape), z["before"].copy(), float(z["seconds"]), timed)
 
 
 class Refined(NamedTuple):

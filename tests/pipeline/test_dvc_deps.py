@@ -204,7 +204,8 @@ def test_the_pipeline_has_every_stage_of_every_domain_and_method():
     p = params()
     names = {s.name for s in stages()}
     assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate", "search_only",
-                                                                  "evaluate_finetuned", "evaluate_refined")
+                                                                  "evaluate_finetuned", "evaluate_refined", "label",
+                                                                  "teach", "evaluate_taught", "evaluate_taught_refined")
                                              for d in p["domains"]} | \
         {f"finetune@{d}-{m}" for d in p["domains"] for m in p["methods"]}
 
@@ -314,7 +315,13 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         splits = p["evaluate"][domain]["splits"]
         outs = [layout.eval_dir(k, domain) / f for k in keys for f in (*map(programs_csv, splits), GRID, METRICS)]
         return rel([*(layout.finetune_dir(domain, m) for m in p["methods"]), layout.prepared(domain)]), rel(outs)
-    if stage.group in ("evaluate", "evaluate_refined"):
+    if stage.group == "label":
+        return rel([layout.prepared(domain)]), rel([layout.labels(domain), layout.labels_dir / f"{domain}.json"])
+    if stage.group == "teach":
+        # the shipped SP network it starts from (init: pretrained)
+        return rel([layout.labels(domain), layout.prepared(domain), Path(f"plad/shipped/{domain}/pretrained.pt")]), \
+            rel([layout.finetune_dir(domain, "taught"), layout.finetune_summary(domain, "taught")])
+    if stage.group in ("evaluate", "evaluate_refined", "evaluate_taught", "evaluate_taught_refined"):
         sweep = stage.sets.get("sweep_beam")
         out = layout.eval_dir(eval_key(method, int(sweep) if sweep else None, stage.sets.get("refine") == "true"),
                               domain)

@@ -15,7 +15,9 @@ PROFILES = ("cpu", "smoke", "paper")
 
 def stage_classes():
     from flows.finetune import FlowsConfig
+    from plad.learn.labels import LabelConfig
     from plad.learn.pretrain import PretrainConfig
+    from plad.learn.teach import TeachConfig
     from plad.stages.evaluate import EvaluateConfig
     from plad.stages.finetune import FinetuneStageConfig
     from plad.stages.prepare import PrepareConfig
@@ -25,7 +27,7 @@ def stage_classes():
 
     return {"prepare": PrepareConfig, "synthesize": SynthesizeConfig, "pretrain": PretrainConfig,
             "evaluate": EvaluateConfig, "search_only": SearchOnlyConfig, "finetune": FinetuneStageConfig,
-            "report": ReportConfig, "flows": FlowsConfig}
+            "report": ReportConfig, "flows": FlowsConfig, "label": LabelConfig, "teach": TeachConfig}
 
 
 def project(tmp_path: Path, profile: str = "cpu", params: dict | None = None, profiles: dict | None = None) -> Path:

@@ -1,0 +1,264 @@
+"""Networks taught by search: supervised training of p(z|x) on search labels of the real shapes (issue 58).
+
+Beyond the paper, beside its rows: with the labels of :mod:`plad.learn.labels` fixed, teaching is plain
+maximum likelihood (:func:`plad.learn.train.fit`) on batches drawn, each whole from one source by weight,
+from
+
+* ``st``:   (real training shape, its label): the real distribution, with the search's approximation;
+* ``lest``: (the label's execution, the label): exact pairs on the shapes search draws;
+* ``aug``:  (execution, program) of a label changed by an exact symmetry of its grammar and an edit
+  (:mod:`plad.learn.augment`), drawn afresh every batch: an unlimited stream near the real distribution.
+
+Every epoch measures the fit beside validation: the metric at beam ``fit_beam`` (greedy by default) and
+at beam ``fit_beam_wide`` on a fixed, evenly spaced sample of the labelled training shapes (``fit`` and
+``fit_wide``), and the validation metric at beam ``val_beam`` on the validation shapes (``val``, which
+selects the model). ``history.csv`` holds one row per epoch; the summary gives the labels' own metric on
+the fit sample, the ceiling the fit is measured against.
+
+Writes to ``runs/finetune/<domain>/taught/`` (:mod:`plad.layout`): ``best.pt`` (selected on ``val``),
+``last.pt`` (resume state: a killed run continues after its last finished epoch), ``history.csv`` and
+``summary.json`` (also ``results/finetune/<domain>/taught.json``). The evaluate stage evaluates it as the
+method ``taught``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from plad.config import ConfigError
+from plad.fsutil import atomic_write_text
+from plad.layout import SUMMARY, Layout
+from plad.learn.train import TrainConfig
+
+#: the method key of a taught network (its run folder and its evaluation)
+TAUGHT = "taught"
+HISTORY_FILE = "history.csv"
+#: the batch sources of teaching
+TEACH_SOURCES = ("st", "lest", "aug")
+
+
+@dataclass
+class AugmentConfig:
+    """How the ``aug`` source changes a label (:func:`plad.learn.augment.pairs`)."""
+
+    #: chance of one random exact symmetry of the grammar (the identity among them)
+    symmetry_share: float = 0.5
+    #: chance of one random edit (parameter jitter, dropping a part, grafting a sub-program of another label)
+    edit_share: float = 0.5
+
+
+@dataclass
+class TeachConfig:
+    """Params ``teach.<domain>`` (stage ``teach@<domain>``)."""
+
+    domain: str = field(kw_only=True)
+    #: where training starts: "pretrained" (the domain's shipped SP network), "shipped" (its shipped network)
+    #: or the path of a checkpoint
+    init: str = "pretrained"
+    device: str = "auto"
+    #: arithmetic of the training forward passes (:mod:`plad.device`); decoding stays float32
+    precision: str = "fp32"
+    threads: int | None = 1
+    seed: int = 0
+    #: only the first N labels of the labelling order (a uniform sample of the split; null: all)
+    label_limit: int | None = None
+    #: validation shapes, evenly spaced over the split (null: all), and the beam that selects the model
+    val_limit: int | None = 150
+    val_beam: int = 3
+    #: the fit: this many labelled training shapes, evenly spaced over the labels, at two beams every epoch
+    fit_shapes: int = 100
+    fit_beam: int = 1
+    fit_beam_wide: int = 10
+    infer_batch: int = 100
+    #: weights of the batch sources (st, lest, aug); a source of weight 0 is left out
+    sources: dict[str, float] = field(default_factory=lambda: {"st": 1.0, "lest": 1.0, "aug": 0.0})
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    #: wall-clock safety net in minutes (null: none): the epochs fix the work
+    max_minutes: float | None = None
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        from plad.device import check_precision
+
+        check_precision(self.precision)
+
+
+def check(cfg: TeachConfig, where: str) -> None:
+    """Fail early (ConfigError naming ``where``) on a bad configuration."""
+    unknown = sorted(set(cfg.sources) - set(TEACH_SOURCES))
+    if unknown:
+        raise ConfigError(f"{where}.sources: unknown source(s) {', '.join(unknown)}; sources are "
+                          f"{', '.join(TEACH_SOURCES)}")
+    if any(not (w >= 0 and math.isfinite(w)) for w in cfg.sources.values()) or not sum(cfg.sources.values()) > 0:
+        raise ConfigError(f"{where}.sources: weights must be finite, at least 0, and not all 0 ({cfg.sources})")
+    for name in ("symmetry_share", "edit_share"):
+        v = getattr(cfg.augment, name)
+        if not 0.0 <= v <= 1.0:
+            raise ConfigError(f"{where}.augment.{name} = {v}: expected a share between 0 and 1")
+    for name in ("val_beam", "fit_beam", "fit_beam_wide", "infer_batch"):
+        if getattr(cfg, name) < 1:
+            raise ConfigError(f"{where}.{name} = {getattr(cfg, name)}: expected at least 1")
+    if cfg.fit_shapes < 0:
+        raise ConfigError(f"{where}.fit_shapes = {cfg.fit_shapes}: expected at least 0")
+    for name in ("label_limit", "val_limit"):
+        v = getattr(cfg, name)
+        if v is not None and v < 1:
+            raise ConfigError(f"{where}.{name} = {v}: expected a positive number of shapes, or null")
+
+
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _batch(shapes: np.ndarray, programs: np.ndarray, device: torch.device) -> Batch:
+    """(shapes (N, *s) float, programs (N, L) long, lengths (N,)) from bool shapes and -1 padded programs."""
+    from plad.device import to_device
+    from plad.domains.base import split_padding
+
+    tokens, lengths = split_padding(torch.from_numpy(programs.astype(np.int64)))
+    return to_device(shapes, device), to_device(tokens, device), to_device(lengths, device)
+
+
+def label_sources(domain, real: np.ndarray, programs: np.ndarray, executions: np.ndarray, cfg: TeachConfig,
+                  device: torch.device) -> dict:
+    """The batch sources (``(rng, n) -> Batch``) of the configured weights: real shapes (N, *s) with their
+    labels (N, L) -1 padded, and the labels' executions (N, *s)."""
+    def st(rng: np.random.Generator, n: int) -> Batch:
+        idx = rng.integers(len(programs), size=n)
+        return _batch(real[idx], programs[idx], device)
+
+    def lest(rng: np.random.Generator, n: int) -> Batch:
+        idx = rng.integers(len(programs), size=n)
+        return _batch(executions[idx], programs[idx], device)
+
+    lists = [row[row >= 0].tolist() for row in programs]
+
+    def aug(rng: np.random.Generator, n: int) -> Batch:
+        from plad.learn.augment import pairs
+        from plad.rewrite.pool import pad_programs
+
+        idx = rng.integers(len(lists), size=n)
+        shapes, changed = pairs(domain, [lists[i] for i in idx], rng, symmetry_share=cfg.augment.symmetry_share,
+                                edit_share=cfg.augment.edit_share)
+        return _batch(np.asarray(shapes, dtype=bool), pad_programs(changed, programs.shape[1]), device)
+
+    every = {"st": st, "lest": lest, "aug": aug}
+    return {k: every[k] for k, w in cfg.sources.items() if w > 0}
+
+
+def _write_history(path: Path, rows: list[dict]) -> None:
+    keys: list[str] = []
+    for r in rows:
+        keys.extend(k for k in r if k not in keys)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=keys)
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: r.get(k, "") for k in keys})
+    atomic_write_text(path, buf.getvalue())
+
+
+def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -> dict:
+    """Teach one domain's network, from the checkpoint ``start`` (what ``cfg.init`` names), on its search labels;
+    returns the summary (a pure function of the config and the files it names: labels, prepared shapes, start)."""
+    from plad.data.files import evenly_spaced_index, load_prepared, load_split
+    from plad.device import resolve_device, resolve_precision
+    from plad.domains import get_domain
+    from plad.fsutil import sha256_file
+    from plad.learn.labels import load_labels
+    from plad.learn.loop import Objective, budget_seconds
+    from plad.learn.methods import Mixture, mixture_batches
+    from plad.learn.rounds import mean_metric
+    from plad.learn.train import fit
+    from plad.model.checkpoint import load_model, network_digest
+    from plad.provenance import stamp
+    from plad.rewrite.pool import pad_programs
+
+    started = time.monotonic()
+    where = f"teach.{cfg.domain}"
+    check(cfg, where)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    device = resolve_device(cfg.device)
+    model, name = load_model(start, device, expect_domain=cfg.domain)
+    domain = get_domain(name)
+    labels_file = layout.labels(cfg.domain)
+    labels = load_labels(labels_file)
+    n = len(labels) if cfg.label_limit is None else min(len(labels), cfg.label_limit)
+    shapes = load_prepared(layout.prepared(cfg.domain), "train")
+    real = shapes[labels.index[:n]]
+    programs = pad_programs(labels.programs[:n], domain.tokens.max_len)
+    executions = labels.executions[:n]
+    val = load_split(layout.prepared(cfg.domain), "val", cfg.val_limit)[0]
+    fit_idx = evenly_spaced_index(n, min(cfg.fit_shapes, n)) if cfg.fit_shapes else np.zeros(0, np.int64)
+    fit_real = real[fit_idx]
+    torch.manual_seed(cfg.seed)
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
+
+    out = layout.finetune_dir(cfg.domain, TAUGHT)
+    out.mkdir(parents=True, exist_ok=True)
+    metric = domain.metric
+    weights = {k: w for k, w in cfg.sources.items() if w > 0}
+    total = sum(weights.values())
+    mixture = Mixture(tuple(weights), tuple(w / total for w in weights.values()))
+    sources = label_sources(domain, real, programs, executions, cfg, device)
+    batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=cfg.seed * 7919 + 58,
+                              bucket_pool=cfg.train.bucket_pool)
+
+    def validate(m) -> dict[str, float]:
+        row = {"val": mean_metric(m, domain, val, cfg.val_beam, cfg.infer_batch)}
+        if len(fit_real):
+            row["fit"] = mean_metric(m, domain, fit_real, cfg.fit_beam, cfg.infer_batch)
+            row["fit_wide"] = mean_metric(m, domain, fit_real, cfg.fit_beam_wide, cfg.infer_batch)
+        return row
+
+    history_path = out / HISTORY_FILE
+    rows: list[dict] = []
+    if history_path.exists():
+        with open(history_path, newline="") as fh:
+            rows = [dict(r) for r in csv.DictReader(fh)]
+
+    def on_unit(unit: int, row: dict) -> None:
+        nonlocal rows
+        rows = [r for r in rows if int(float(r.get("unit", -1))) < unit] + [{"unit": unit, **row}]   # a resumed
+        # run redoes the epoch after its last.pt: that row is written again
+        _write_history(history_path, rows)
+        log(f"teach {cfg.domain}: epoch {unit} " + " ".join(
+            f"{k} {v:.4f}" for k, v in row.items() if isinstance(v, float) and k in (
+                "train_loss", "val", "fit", "fit_wide", "lr", "unit_seconds")))
+
+    if not rows:   # the starting network's row (epoch 0): where the curve of fit and validation begins
+        t0 = time.perf_counter()
+        model.eval()
+        on_unit(0, {**validate(model), "unit_seconds": time.perf_counter() - t0})
+    # a last.pt of other work is not resumed (fit starts over): the labels, the start, the config
+    fingerprint = {"labels": sha256_file(labels_file), "init": network_digest(start), "n": n,
+                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
+    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
+    result = fit(model, batches, validate, cfg.train, out, domain=domain.name, token_names=domain.tokens.names,
+                 objective=Objective("val", metric.higher_is_better),
+                 budget_seconds=budget_seconds(cfg.max_minutes), on_unit=on_unit, desc=f"teach {cfg.domain}",
+                 fingerprint=fingerprint, precision=resolve_precision(cfg.precision, device))
+    label_fit = float(labels.values[:n][fit_idx].mean()) if len(fit_idx) else None
+    summary = {"key": TAUGHT, "domain": cfg.domain, "metric": metric.name, **result.summary(),
+               "labels": n, "labels_mean": round(float(labels.values[:n].mean()), 6),
+               "fit_labels_mean": None if label_fit is None else round(label_fit, 6),
+               "fit_shapes": int(len(fit_idx)), "val_shapes": int(len(val)),
+               "sources": weights, "init": str(cfg.init), "init_network_sha256": network_digest(start),
+               "max_epochs": cfg.train.max_epochs, "steps": result.units * cfg.train.steps_per_epoch,
+               "history": [{k: v for k, v in r.items() if k in ("epoch", "val", "fit", "fit_wide", "train_loss",
+                                                                 "seconds")} for r in result.history],
+               "provenance": stamp(cfg, started)}
+    text = json.dumps(summary, indent=2) + "\n"
+    atomic_write_text(out / SUMMARY, text)
+    atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), text)
+    return {k: v for k, v in summary.items() if k != "history"}

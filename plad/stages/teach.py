@@ -1,0 +1,76 @@
+"""Stage ``teach``: a network taught by search labels of the real shapes (beyond the paper, issue 58).
+
+A thin shell around :func:`plad.learn.teach.teach` as one MLflow run (method ``taught``, a metric row per
+epoch): reads ``teach.<domain>``, trains on ``data/labels/<domain>.npz`` and writes
+``runs/finetune/<domain>/taught/`` (:mod:`plad.layout`).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from plad.learn.teach import TAUGHT, TeachConfig
+from plad.stages import StageContext, stage_main
+
+
+def init_checkpoint(cfg: TeachConfig) -> Path:
+    """The checkpoint teaching starts from (``init``): the shipped SP network ("pretrained"), the shipped
+    network ("shipped") or a path."""
+    from plad.config import ConfigError
+    from plad.shipped import pretrained_checkpoint, shipped_model
+
+    if cfg.init == "pretrained":
+        return pretrained_checkpoint(cfg.domain)
+    if cfg.init == "shipped":
+        model = shipped_model(cfg.domain)
+        if model is None:
+            raise ConfigError(f"teach.{cfg.domain}.init = shipped: no shipped {cfg.domain} model")
+        model.verify()
+        return model.checkpoint
+    return Path(cfg.init)
+
+
+def tracked_teach(cfg: TeachConfig, ctx: StageContext = StageContext()) -> dict:
+    import csv
+
+    import numpy as np
+
+    from plad.domains import get_domain
+    from plad.layout import BEST, SUMMARY
+    from plad.learn.teach import HISTORY_FILE, teach
+    from plad.tracking import StageRun
+
+    out = ctx.layout.finetune_dir(cfg.domain, TAUGHT)
+    out.mkdir(parents=True, exist_ok=True)
+    with StageRun("teach", cfg.domain, asdict(cfg), out, method=TAUGHT, params_path=ctx.params) as run:
+        def log(line: str) -> None:
+            print(line, file=sys.stderr, flush=True)
+
+        summary = teach(cfg, init_checkpoint(cfg), ctx.layout, log=log)
+        with open(out / HISTORY_FILE, newline="") as fh:
+            history = list(csv.DictReader(fh))
+        for row in history:
+            numbers = {}
+            for k, v in row.items():
+                try:
+                    x = float(v)
+                except (TypeError, ValueError):
+                    continue
+                if np.isfinite(x) and k != "unit":
+                    numbers[k] = x
+            run.log_metrics(numbers, step=int(float(row["unit"])))
+        metric = get_domain(cfg.domain).metric
+        run.log_result(metric=metric.name, higher_is_better=metric.higher_is_better, val=summary.get("val"),
+                       train_seconds=summary.get("train_seconds"), stopped=summary["stopped"])
+        for name in (SUMMARY, BEST, HISTORY_FILE):
+            run.log_artifact(out / name)
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main("teach", TeachConfig, tracked_teach, argv, __doc__.splitlines()[0])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""Search labels (plad.learn.labels) and the network taught by them (plad.learn.teach): exact, resumable."""
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from plad.config import ConfigError, build
+from plad.data.files import DataError, load_prepared, write_prepared
+from plad.domains import get_domain
+from plad.domains.base import pad_programs
+from plad.layout import Layout
+from plad.learn.labels import LabelConfig, label_shapes, load_labels, order
+from plad.learn.teach import TeachConfig, teach
+
+#: a cheap search: few insertions, no refinement
+SMALL = {"insertions": 3, "refine": {"rounds": 0}}
+
+
+def _project(root, domain_name: str = "csg2d", n: int = 9) -> Layout:
+    """A layout root whose prepared shapes are executions of sampled programs (n train, 4 val)."""
+    domain = get_domain(domain_name)
+    rng = np.random.default_rng(11)
+    split = {s: domain.execute(pad_programs(domain.sample(k, rng))).numpy() for s, k in (("train", n), ("val", 4))}
+    layout = Layout(root)
+    write_prepared(domain_name, domain.shape, split, layout.prepared(domain_name),
+                   layout.prepared_summary(domain_name))
+    return layout
+
+
+def _label(layout: Layout, **kw):
+    cfg = LabelConfig(domain="csg2d", **{"chunk": 3, "search": SMALL, **kw})
+    return label_shapes(cfg, layout.prepared("csg2d"), layout.labels_dir, log=lambda line: None)
+
+
+def test_labels_are_exactly_what_their_programs_draw_and_a_killed_run_resumes(tmp_path):
+    layout = _project(tmp_path)
+    domain = get_domain("csg2d")
+    summary = _label(layout, limit=5)                   # rounded up to whole chunks: 6 shapes
+    labels = load_labels(layout.labels("csg2d"))
+    assert summary["n"] == len(labels) == 6 and summary["chunks"] == 2 and summary["chunks_resumed"] == 0
+    assert np.array_equal(labels.index, order(9)[:6])   # the labelling order's prefix
+    assert summary["rescored_max_difference"] == 0.0
+    targets = load_prepared(layout.prepared("csg2d"), "train")[labels.index]   # by position in the split
+    execs = domain.execute(pad_programs(labels.programs))
+    assert torch.equal(execs, torch.from_numpy(labels.executions))
+    assert np.array_equal(domain.metric(execs, torch.from_numpy(targets)).numpy(), labels.values)
+    meta = json.loads((layout.labels_dir / "csg2d.json").read_text())
+    assert meta["mean"] == round(float(labels.values.mean()), 6) and meta["split_shapes"] == 9
+
+    # a kill after the first chunk: the run again searches only the other one, with the same labels
+    parts = layout.labels_dir / "csg2d.parts"
+    (parts / "chunk_00001.npz").unlink()
+    again = _label(layout, limit=5)
+    assert again["chunks_resumed"] == 1
+    assert load_labels(layout.labels("csg2d")).programs == labels.programs
+    # a larger limit reuses both chunks and searches the third
+    more = _label(layout, limit=None)
+    assert more["chunks_resumed"] == 2 and more["n"] == 9
+    assert load_labels(layout.labels("csg2d")).programs[:6] == labels.programs
+    # other search settings are other work: the chunks are not reused
+    other = _label(layout, limit=5, search={"insertions": 2, "refine": {"rounds": 0}})
+    assert other["chunks_resumed"] == 0
+
+
+def test_label_config_errors_name_the_key(tmp_path):
+    layout = _project(tmp_path)
+    with pytest.raises(ConfigError, match=r"label\.csg2d: workers"):
+        _label(layout, workers=0)
+    with pytest.raises(ConfigError, match=r"label\.csg2d\.search"):
+        _label(layout, search={"no_such_key": 1})
+    with pytest.raises(DataError, match="no labels"):
+        load_labels(tmp_path / "missing.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(DataError, match="not a labels file"):
+        load_labels(bad)
+
+
+def _teach_cfg(init, **kw) -> TeachConfig:
+    raw = {"domain": "csg2d", "init": str(init), "device": "cpu", "val_limit": 4, "val_beam": 2, "fit_shapes": 3,
+           "fit_beam_wide": 2, "infer_batch": 8, "sources": {"st": 1.0, "lest": 1.0},
+           "train": {"batch_size": 4, "steps_per_epoch": 2, "max_epochs": 2, "patience": 5}, **kw}
+    return build(TeachConfig, raw, "teach.csg2d")
+
+
+def test_teaching_records_fit_beside_validation_and_resumes(tmp_path, tiny_checkpoint):
+    layout = _project(tmp_path)
+    _label(layout)
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    summary = teach(_teach_cfg(init), init, layout, log=lambda line: None)
+    out = layout.finetune_dir("csg2d", "taught")
+    with open(out / "history.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["unit"]) for r in rows] == [0, 1, 2]   # the start, then every epoch
+    for r in rows:
+        assert {"val", "fit", "fit_wide"} <= set(r) and all(np.isfinite(float(r[k])) for k in ("val", "fit"))
+    assert rows[1]["train_loss"] != "" and summary["units"] == 2 and summary["labels"] == 9
+    labels = load_labels(layout.labels("csg2d"))
+    assert summary["fit_labels_mean"] == round(float(labels.values[[0, 4, 8]].mean()), 6)
+    assert (out / "best.pt").exists() and json.loads((out / "summary.json").read_text())["key"] == "taught"
+    assert json.loads(layout.finetune_summary("csg2d", "taught").read_text())["units"] == 2
+    # run again with more epochs: it continues after epoch 2 (no epoch is trained twice)
+    more = teach(_teach_cfg(init, train={"batch_size": 4, "steps_per_epoch": 2, "max_epochs": 3, "patience": 5}),
+                 init, layout, log=lambda line: None)
+    assert more["units"] == 3
+    with open(out / "history.csv", newline="") as fh:
+        assert [int(r["unit"]) for r in csv.DictReader(fh)] == [0, 1, 2, 3]
+
+
+def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):
+    layout = _project(tmp_path)
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    with pytest.raises(ConfigError, match=r"teach\.csg2d\.sources: unknown source"):
+        teach(_teach_cfg(init, sources={"ws": 1.0}), init, layout)
+    with pytest.raises(ConfigError, match=r"teach\.csg2d\.sources: weights"):
+        teach(_teach_cfg(init, sources={"st": 0.0}), init, layout)
+    with pytest.raises(DataError, match="no labels"):
+        teach(_teach_cfg(init), init, layout)
