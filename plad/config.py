@@ -121,9 +121,31 @@ def _expanded_size(node: yaml.Node, sizes: dict[int, int], open_: set[int]) -> i
     return total
 
 
+def _check_unique_keys(node: yaml.Node, seen: set[int]) -> None:
+    """ValueError naming a key given twice in one mapping (YAML would keep the last one silently: a second
+    ``profile: smoke`` line switched a run's profile); each distinct node is visited once."""
+    if id(node) in seen:
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        first: dict[Any, int] = {}
+        for key, _ in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                line, same = key.start_mark.line + 1, (key.tag, key.value)
+                if same in first:
+                    raise ValueError(f"the key {key.value!r} is given twice in one mapping (lines {first[same]} "
+                                     f"and {line}); YAML would silently keep the second: remove one")
+                first[same] = line
+    children = node.value if isinstance(node, yaml.SequenceNode) else \
+        [n for pair in node.value for n in pair] if isinstance(node, yaml.MappingNode) else []
+    for child in children:
+        _check_unique_keys(child, seen)
+
+
 def safe_yaml(text: str) -> Any:
     """``yaml.safe_load(text)``, refusing (``ValueError``) a document whose aliases expand beyond
-    :data:`MAX_YAML_NODES` nodes or hold themselves: checked on the composed nodes, before anything is built."""
+    :data:`MAX_YAML_NODES` nodes or hold themselves, or a mapping that gives a key twice: checked on the
+    composed nodes, before anything is built."""
     loader = yaml.SafeLoader(text)
     try:
         node = loader.get_single_node()
@@ -133,6 +155,7 @@ def safe_yaml(text: str) -> Any:
         if size > MAX_YAML_NODES:
             raise ValueError(f"its anchors and aliases expand to more than {MAX_YAML_NODES:,} values (an alias "
                              f"bomb?); write the values out")
+        _check_unique_keys(node, set())
         return loader.construct_document(node)
     finally:
         loader.dispose()
@@ -296,6 +319,32 @@ RULES: dict[str, tuple[str, Any]] = {
 }
 
 
+#: the largest value of every size a user can set, by key (in params, a profile, ``--set``, a search's settings):
+#: far above what any run uses, so that a typo or an extra digit (``train_programs: 99999999999999999999``,
+#: ``beam_width: 100000000``, ``threads: 1000``) is refused in one line instead of filling the memory or running
+#: until killed
+_COUNT = 10_000_000           # programs, shapes, steps, epochs, rounds
+_BATCH = 65_536               # rows processed together
+_WORKERS = 256                # threads and processes
+_MINUTES = 525_600            # one year
+LIMITS: dict[str, float] = {
+    **{k: 50_000_000 for k in ("train_programs", "val_programs")},
+    **{k: _COUNT for k in (
+        "val_metric_shapes", "gap_programs", "real_val_shapes", "limit", "train_limit", "val_limit", "grid_shapes",
+        "fit_shapes", "steps_per_epoch", "stage_steps", "max_epochs", "max_rounds", "patience", "round_patience",
+        "lr_patience", "stage_patience", "warmup_steps", "rounds", "accumulate", "max_sample_factor")},
+    **{k: _BATCH for k in ("batch_size", "batch", "sample_batch", "infer_batch", "val_batch", "chunk", "bucket_pool")},
+    **{k: _WORKERS for k in ("threads", "threads_per_task", "workers", "refine_workers", "loader_workers", "shards")},
+    **{k: 1_000 for k in ("po_sweeps", "tune_sweeps", "insertions", "graft", "stages", "retries", "overshoot")},
+    **{k: MAX_BEAM for k in ("beam_width", "beam_refine", "fit_beam", "fit_beam_wide")},
+    **{k: _MINUTES for k in ("max_minutes", "rewrite_minutes", "seed_minutes")},
+    "time_limit": _MINUTES * 60, "retry_delay_seconds": 86_400,
+    # a network's size as a whole is bounded by plad.model.checkpoint.MAX_PARAMETERS (checked before it is built)
+    "d_model": 65_536, "dim_ff": 1_048_576, "n_heads": 256, "n_layers": 64, "enc_channels": 65_536,
+    "enc_kernel": 15, "latent": 1_048_576, "hidden": 1_048_576, "seed": 2 ** 32 - 1,
+}
+
+
 #: the devices a config may name (plad.device.resolve_device)
 DEVICE_NAMES = re.compile(r"auto|cpu|cuda(:\d+)?")
 
@@ -319,13 +368,15 @@ def _check_value(key: str, value: Any, where: str, source: str) -> None:
             if name not in known:
                 raise ConfigError(f"{source}: {where}.{key}: unknown domain {name!r}; known: {', '.join(known)}")
         return
-    rule = RULES.get(key)
-    if rule is None:
-        return
-    problem, ok = rule
+    rule, limit = RULES.get(key), LIMITS.get(key)
     for v in value if isinstance(value, (list, tuple)) else [value]:
-        if _number(v) and (v != v or not ok(v)):   # v != v: NaN
-            raise ConfigError(f"{source}: {where}.{key} = {value!r} {problem}")
+        if not _number(v):
+            continue
+        if rule is not None and (v != v or not rule[1](v)):   # v != v: NaN
+            raise ConfigError(f"{source}: {where}.{key} = {value!r} {rule[0]}")
+        if limit is not None and (v != v or v > limit):
+            raise ConfigError(f"{source}: {where}.{key} = {value!r} is more than the limit of {limit:,} "
+                              f"(plad.config.LIMITS)")
 
 
 def _check_type(value: Any, annotation: Any) -> bool:
@@ -434,8 +485,10 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str], where: str) -> di
             if not isinstance(node.get(p), dict):
                 node[p] = {}
             node = node[p]
+        if not text.strip():   # `--set init=` is a typo or a shell's empty variable, never "none"
+            raise ConfigError(f"--set {item!r}: no value; write {key.strip()}=null for none")
         try:
-            node[parts[-1]] = safe_yaml(text) if text.strip() else None
+            node[parts[-1]] = safe_yaml(text)
         except yaml.YAMLError:
             raise ConfigError(f"--set {item!r}: value is not valid YAML") from None
         except (ValueError, RecursionError) as err:

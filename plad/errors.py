@@ -17,10 +17,15 @@ This is the one place the convention is written; the commands' documentation ref
 Each error class a user can cause derives from :class:`RunFailure` or
 :class:`BadInput` and so carries its status; :func:`run_guarded` is where the
 CLI and every stage's ``main()`` turn such an error into one line on stderr
-and its status. Anything else is a bug and keeps its traceback.
+and its status. So is an ``OSError`` of the machine rather than of the code
+(:data:`ENVIRONMENT_ERRNOS`: a full disk, a read-only or unwritable place, a
+name too long): one line naming the file and the cause, status 1 (every
+output is written by :func:`plad.fsutil.atomic_write`, so the old files are
+intact). Anything else is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
+import errno
 import sys
 from collections.abc import Callable
 
@@ -57,10 +62,28 @@ def fail(prog: str, message: object, status: int) -> int:
     return status
 
 
+#: the errors of the machine a command runs on, not of its code: one line, never a traceback
+ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG,
+                                errno.ENAMETOOLONG, errno.EMFILE, errno.ENFILE, errno.EIO})
+
+
+def describe_os_error(err: OSError) -> str:
+    """An ``OSError`` in one line: ``cannot use '<file>': <cause>``."""
+    name = err.filename if err.filename is not None else ""
+    shown = str(name) if str(name).isprintable() else repr(str(name))
+    cause = err.strerror or one_line(err) or err.__class__.__name__
+    return f"cannot use {shown}: {cause}" if name != "" else cause
+
+
 def run_guarded(prog: str, fn: Callable[[], int | None], describe: Callable[[PladError], str] = str) -> int:
-    """``fn()``'s status (None: :data:`OK`); a :class:`PladError` becomes one line and its ``exit_code``."""
+    """``fn()``'s status (None: :data:`OK`); a :class:`PladError` becomes one line and its ``exit_code``, and so
+    does an ``OSError`` of :data:`ENVIRONMENT_ERRNOS` (status :data:`FAILURE`)."""
     try:
         status = fn()
     except PladError as err:
         return fail(prog, describe(err), err.exit_code)
+    except OSError as err:
+        if err.errno not in ENVIRONMENT_ERRNOS:
+            raise
+        return fail(prog, describe_os_error(err), FAILURE)
     return OK if status is None else status

@@ -11,11 +11,19 @@ batch gives one item per shape, so one bad shape of a batch is one error.
 2D domains (a canvas of ``domain.shape``, e.g. 64 x 64):
 
 * images (``.png``, ``.jpg``, ``.bmp``, ``.gif``, ``.tif``, ``.webp``), any
-  color mode: with a varying alpha channel, the opaque pixels are the shape;
-  otherwise the gray values (16-bit and float images on their own scale, never
-  clipped to 8 bits) are split at Otsu's threshold and the shape is the side
-  that covers less of the image border (black on white and white on black
-  both work).
+  color mode: the gray values (16-bit and float images on their own scale,
+  never clipped to 8 bits) are split at Otsu's threshold and the shape is the
+  side that covers less of the image border (black on white and white on
+  black both work). An image with transparent pixels (alpha below 128) and
+  opaque ones is read by one rule (:func:`binarize`), with a note saying
+  which way: where the transparent pixels are the background around the
+  shape (most of the border), or where the opaque pixels are of one color,
+  the alpha channel is the shape (the side of it that covers less of the
+  border); otherwise the shape is read from the opaque pixels' colors as
+  above and the transparent pixels are background (one stray transparent
+  pixel never turns a drawing into a filled square). A file of several frames
+  (an animated GIF, a multi-page TIFF) is read from its first frame, with a
+  note.
 * ``.npy`` arrays (and the pyfunc's arrays): one (H, W) array, or a batch
   (N, *canvas*) of canvas-sized arrays; nonzero is inside. Any other array
   (e.g. a 32^3 voxel grid) is refused.
@@ -29,7 +37,9 @@ batch gives one item per shape, so one bad shape of a batch is one error.
 
 3D domains (a voxel grid of ``domain.shape``, e.g. 32^3 indexed [x, y, z], y up):
 
-* meshes (``.obj``, ``.ply``, ``.off``, ``.stl``, read with open3d), normalized
+* meshes (``.obj``, ``.ply``, ``.off``, ``.stl``, read with open3d, at most
+  :data:`plad.data.mesh.MAX_TRIANGLES` triangles, counted from the header
+  where the format has one: :func:`plad.data.mesh.read_mesh`), normalized
   as the real training shapes: centered on their bounding box, the longest
   side spanning the grid (a predicted mesh in ``plad score``: in its target
   mesh's frame). A watertight mesh is voxelized by whether each voxel center
@@ -152,8 +162,9 @@ def _check_pixels(size: tuple[int, int], what: str) -> None:
 
 
 # ---- images ---------------------------------------------------------------------------------------
-def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """(gray (H, W) float64 on the image's own scale, alpha (H, W) uint8 or None) of an image file.
+def read_image(path: Path, notes: list[str] | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(gray (H, W) float64 on the image's own scale, alpha (H, W) uint8 or None) of an image file (its first
+    frame; a note in ``notes`` when it has more).
 
     Too large or unreadable images are an :class:`InputError`; the size is checked from the header.
     """
@@ -165,6 +176,11 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         with image:
             w, h = image.size
             _check_pixels((h, w), "image")
+            frames = int(getattr(image, "n_frames", 1) or 1)
+            if frames > 1:
+                image.seek(0)
+                if notes is not None:
+                    notes.append(f"the file holds {frames} frames (an animation or pages): read the first only")
             image.load()
             if image.mode in _WIDE_MODES:
                 # 16-bit and float gray: on their own scale (convert("L") would clip them to 0..255)
@@ -184,25 +200,50 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return gray, (rgba[..., 3] if rgba.shape[-1] == 4 else None)
 
 
-def binarize(gray: np.ndarray, alpha: np.ndarray | None = None, target: bool = True) -> np.ndarray:
-    """Foreground mask (H, W) of an image by the module's rule: a varying alpha channel, else Otsu's threshold
-    with the border rule. A single-color image is refused as a target and empty as a prediction."""
-    if alpha is not None and alpha.min() < 128 <= alpha.max():
-        return alpha >= 128
+def _border(mask: np.ndarray) -> np.ndarray:
+    return np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
+
+
+def binarize(gray: np.ndarray, alpha: np.ndarray | None = None, target: bool = True,
+             notes: list[str] | None = None) -> np.ndarray:
+    """Foreground mask (H, W) of an image by the module's rule: Otsu's threshold with the border rule, and the
+    one rule of transparency (module docstring), which says in ``notes`` what it did. A single-color image is
+    refused as a target and empty as a prediction."""
+    notes = [] if notes is None else notes
     if not np.isfinite(gray).all():
         raise InputError("the image holds NaN or infinite values")
+    opaque = None if alpha is None or not (alpha.min() < 128 <= alpha.max()) else alpha >= 128
+    if opaque is not None:
+        seen = gray[opaque]
+        background_transparent = _border(~opaque).mean() > 0.5
+        if background_transparent or seen.max() - seen.min() <= 0:
+            # the alpha channel is the shape: the side of it that covers less of the border
+            shape = opaque if _border(opaque).mean() <= 0.5 else ~opaque
+            notes.append(f"read the shape from the alpha channel: the {'opaque' if shape is opaque else 'transparent'} "
+                         f"pixels ({int(shape.sum())} of {shape.size})")
+            return shape
+        dark = np.zeros(gray.shape, bool)
+        dark[opaque] = seen <= threshold_otsu(seen)
+        light = opaque & ~dark
+        edge = _border(opaque)
+        shape = dark if _border(dark)[edge].mean() <= 0.5 else light
+        notes.append(f"took {int((~opaque).sum())} transparent pixel(s) as background; read the shape from the "
+                     f"opaque pixels' colors")
+        return shape
     if gray.max() - gray.min() <= 0:
         if target:
             raise InputError("the image is a single color: there is no shape in it")
         return np.zeros(gray.shape, bool)
     dark = gray <= threshold_otsu(gray)
-    border = np.concatenate([dark[0], dark[-1], dark[:, 0], dark[:, -1]])
-    return dark if border.mean() <= 0.5 else ~dark
+    return dark if _border(dark).mean() <= 0.5 else ~dark
 
 
-def binarize_image(path: Path, target: bool = True) -> np.ndarray:
-    """Foreground mask (H, W) of an image file by the module's rule."""
-    return binarize(*read_image(path), target=target)
+def binarize_image(path: Path, target: bool = True, notes: list[str] | None = None) -> np.ndarray:
+    """Foreground mask (H, W) of an image file by the module's rule; what it did beyond the plain rule (alpha,
+    frames) goes into ``notes``."""
+    notes = [] if notes is None else notes
+    gray, alpha = read_image(path, notes)
+    return binarize(gray, alpha, target=target, notes=notes)
 
 
 # ---- fitting 2D shapes to the canvas ---------------------------------------------------------------------
@@ -308,17 +349,13 @@ def voxelize_mesh(path: Path, shape: tuple[int, int, int], frame: Frame | None =
 def _voxelize(path: Path, shape: tuple[int, int, int], frame: Frame | None) -> tuple[np.ndarray, list[str], Frame]:
     import open3d as o3d
 
+    from plad.data.mesh import MeshError, read_mesh, watertight
+
     check_file(path)
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    mesh = o3d.io.read_triangle_mesh(str(path))
-    if not mesh.has_triangles():
-        raise InputError("no triangles: not a readable mesh")
-    verts = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.triangles, dtype=np.int64)
-    if faces.min() < 0 or faces.max() >= len(verts):
-        raise InputError("a triangle names a vertex the mesh does not have")
-    if not np.isfinite(verts).all():
-        raise InputError("the mesh has non-finite vertex coordinates")
+    try:   # at most MAX_TRIANGLES, counted from the header first: a cost bounded by the file's size
+        verts, faces = read_mesh(path)
+    except MeshError as err:
+        raise InputError(str(err)) from None
     used = verts[faces].reshape(-1, 3)
     if frame is None:
         lo, hi = used.min(0), used.max(0)
@@ -336,7 +373,10 @@ def _voxelize(path: Path, shape: tuple[int, int, int], frame: Frame | None) -> t
     centers = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
     near = scene.compute_distance(o3d.core.Tensor(centers)).numpy().reshape(shape) <= 0.5 / res.max()
     notes = []
-    if mesh.is_watertight():
+    closed, note = watertight(verts, faces)   # linear in the triangles (plad.data.mesh)
+    if note:
+        notes.append(note)
+    if closed:
         inside = scene.compute_occupancy(o3d.core.Tensor(centers)).numpy().reshape(shape) > 0.5
         # parts thinner than a voxel hold no center: keep the surface layer where nothing is inside
         grid = inside | (near & ~ndimage.binary_dilation(inside))
@@ -479,7 +519,7 @@ def read_file(path: str | Path, shape: tuple[int, ...], name: str | None = None,
             return _array_items(read_npy(path), shape, name, path, target, frames)
         frame = frames[0] if frames else None
         if suffix in IMAGE_SUFFIXES:
-            mask = binarize_image(path, target)    # a file's own problem first, then how it pairs with its target
+            mask = binarize_image(path, target, item.notes)   # a file's own problem first, then its pairing
             _check_count(frames)
             _place_2d(mask, shape, item, target, frame)
         else:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from plad.fsutil import atomic_write
+from plad.fsutil import atomic_write, atomic_write_bytes
 
 #: (name, horizontal axis, vertical axis, depth axis, depth sign): views look along -sign * depth
 VIEWS = (("front", 0, 1, 2, 1), ("side", 2, 1, 0, -1), ("top", 0, 2, 1, 1))
@@ -92,8 +92,22 @@ def save_comparison(panels: Sequence[tuple[str, np.ndarray]], path: str | Path, 
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(str(path), dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
+
+
+def save_figure(fig, path: str | os.PathLike, **savefig) -> None:
+    """A matplotlib figure as the PNG file ``path``, written atomically (:func:`plad.fsutil.atomic_write`: a
+    full disk is a one-line ``WriteError``, never a truncated picture); the figure is closed."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    try:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", **savefig)
+    finally:
+        plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 # -- pixel grids of (target | reconstruction) pairs ----------------------------------------------
@@ -131,3 +145,13 @@ def pair_grid(targets: np.ndarray, recons: np.ndarray, columns: int = 4, scale: 
 def save_png(image: np.ndarray, path: str | os.PathLike) -> None:
     """An image array (uint8, (H, W) or (H, W, 3)) as a PNG file, written atomically."""
     atomic_write(path, lambda fh: Image.fromarray(image).save(fh, format="PNG"))
+
+
+def save_npy(array: np.ndarray, path: str | os.PathLike) -> None:
+    """An array as a ``.npy`` file, written atomically (through a buffer: ``np.save`` on a real file writes
+    past Python's file object)."""
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, array)
+    atomic_write_bytes(path, buf.getvalue())

@@ -291,17 +291,18 @@ class Domain(abc.ABC):
 
 
 def save_grid(grid: np.ndarray, path: Path) -> None:
-    """Write one executed shape: ``.npy`` (bool array), or for a 2D grid ``.png`` (8-bit gray, 255 inside).
+    """Write one executed shape: ``.npy`` (bool array), or for a 2D grid ``.png`` (8-bit gray, 255 inside),
+    atomically (:func:`plad.fsutil.atomic_write`: a failure is a one-line ``WriteError`` and the old file stays).
 
     Raises ``ValueError`` naming the file for any other suffix.
     """
+    from plad.data.pictures import save_npy, save_png
+
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        np.save(path, grid.astype(bool))
+        save_npy(grid.astype(bool), path)
     elif suffix == ".png" and grid.ndim == 2:
-        from PIL import Image
-
-        Image.fromarray(grid.astype(np.uint8) * 255, mode="L").save(path)
+        save_png(grid.astype(np.uint8) * 255, path)
     else:
         allowed = ".png or .npy" if grid.ndim == 2 else ".npy"
         raise ValueError(f"{path}: unsupported output type {suffix or '(none)'!r}; use {allowed}")

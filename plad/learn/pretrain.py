@@ -50,7 +50,7 @@ from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
 from plad.learn.synthetic import ExecutorPool, load_programs, make_batch
 from plad.learn.train import VAL_LOSS, TrainConfig, fit
-from plad.model.checkpoint import read_checkpoint
+from plad.model.checkpoint import MAX_PARAMETERS, estimate_parameters, read_checkpoint
 from plad.model.network import Architecture, ModelConfig, PLADNet, count_parameters
 
 
@@ -124,9 +124,17 @@ def real_val_shapes(path: Path, n: int) -> torch.Tensor:
 CONTINUE_LR = ("restart", "resume")
 
 
+def check_epochs(cfg: PretrainConfig, init_path: Path | None) -> None:
+    """``train.max_epochs: 0`` only for a pretraining that continues a checkpoint (it takes that one over); a
+    fresh one of no epochs would train nothing and leave no history (ConfigError, one line)."""
+    if cfg.train.max_epochs == 0 and init_path is None and cfg.init is None:
+        raise ConfigError(f"pretrain.{cfg.domain}.train.max_epochs = 0 trains nothing: only a pretraining that "
+                          f"continues a checkpoint (init) may take 0 epochs")
+
+
 def read_init(path: Path, cfg: PretrainConfig, model_cfg: ModelConfig) -> dict:
     """The training state a continued pretraining starts from, checked against this run's settings."""
-    from plad.model.checkpoint import CheckpointError
+    from plad.model.checkpoint import CheckpointError, check_training_state
 
     if not path.is_file():
         raise ConfigError(f"pretrain.{cfg.domain}.init: {path} not found (a pretraining's last.pt or a shipped "
@@ -150,6 +158,10 @@ def read_init(path: Path, cfg: PretrainConfig, model_cfg: ModelConfig) -> dict:
     if (payload.get("stages") is not None) != cfg.curriculum.enabled:
         raise ConfigError(f"pretrain.{cfg.domain}.init: {path} was trained with curriculum.enabled "
                           f"{not cfg.curriculum.enabled}; continue it with the same setting")
+    try:   # the one check of a training state before training continues from it (weights, Adam, RNGs, ...)
+        check_training_state(path, payload)
+    except CheckpointError as err:
+        raise ConfigError(f"pretrain.{cfg.domain}.init: {err}") from None
     return payload
 
 
@@ -202,6 +214,7 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
 
     if cfg.continue_lr not in CONTINUE_LR:
         raise ConfigError(f"pretrain.{cfg.domain}.continue_lr: {cfg.continue_lr!r}; one of {', '.join(CONTINUE_LR)}")
+    check_epochs(cfg, init_path)
     if init_path is None and cfg.init is not None:
         if cfg.init == "shipped":
             raise ConfigError(f"pretrain.{cfg.domain}.init: 'shipped' is resolved by the pretrain stage "
@@ -221,7 +234,11 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         if cfg.curriculum.enabled else None
     real = real_val_shapes(layout.prepared(cfg.domain), cfg.real_val_shapes).to(device) \
         if cfg.real_val_shapes else None
-    model = PLADNet(ModelConfig.for_domain(cfg.model, domain)).to(device)
+    model_cfg = ModelConfig.for_domain(cfg.model, domain)
+    if estimate_parameters(model_cfg) > MAX_PARAMETERS:   # refused before anything is allocated
+        raise ConfigError(f"pretrain.{cfg.domain}.model declares a network of about "
+                          f"{estimate_parameters(model_cfg):,} parameters, more than the limit of {MAX_PARAMETERS:,}")
+    model = PLADNet(model_cfg).to(device)
     init_payload = read_init(init_path, cfg, model.cfg) if init_path is not None else None
     precision = resolve_precision(cfg.precision, device)
     if cfg.compile:

@@ -31,7 +31,7 @@ from plad.device import FP32, Precision
 from plad.layout import BEST, LAST
 from plad.learn import distributed as dist
 from plad.learn.loop import Limits, Loop, LoopResult, LoopState, Objective, Unit, upgrade_state
-from plad.model.checkpoint import read_checkpoint, save_checkpoint
+from plad.model.checkpoint import check_training_state, read_checkpoint, save_checkpoint
 from plad.model.network import PLADNet
 
 log = logging.getLogger(__name__)
@@ -134,6 +134,8 @@ class _LastCheckpoint:
         if payload is not None and payload.get("fingerprint") != self.fingerprint:
             log.warning("%s was written with other settings; starting over", self.path)
             payload = None
+        if payload is not None:   # a damaged state is refused in one line (CheckpointError), never resumed
+            check_training_state(self.path, payload)
         if payload is None and self.init is not None:
             return self._start_segment()
         if payload is None:

@@ -15,6 +15,15 @@ Two files make one model, so concurrent use is coordinated by ``<domain>/.ship.l
 (:func:`plad.fsutil.file_lock`): :func:`ship` writes the pair under the exclusive lock (two ships
 at once: one after the other, the last one shipped), :meth:`ShippedModel.verify` checks it under
 the shared one, and refuses (one line) a model re-shipped since its sidecar was read.
+
+A pair is replaced so that a process killed at any moment loses nothing (:func:`_write_pair`): both new
+files are first written completely beside the old ones (``.model.pt.new``, ``.model.json.new``), then
+renamed into place, the checkpoint first. A kill between the two renames leaves the new checkpoint and its
+pending sidecar, which readers take as the sidecar (it names that checkpoint's sha256) and the next ship
+renames into place (:func:`_settle`). The model a ship replaces goes to ``previous/`` only when its pair is
+valid (the sidecar names the checkpoint's sha256), by the same two-step replacement: a damaged pair never
+replaces the one backup. The pretrained networks and their index (:func:`ship_pretrained`) are replaced
+the same way.
 """
 from __future__ import annotations
 
@@ -22,6 +31,7 @@ import json
 import os
 import shutil
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,6 +59,26 @@ def shipped_dir() -> Path:
     return Path(env) if env else Path(__file__).resolve().parent
 
 
+def _pending(path: Path) -> Path:
+    """Where the new version of ``path`` is written before it replaces ``path`` (``.<name>.new``)."""
+    return path.with_name(f".{path.name}.new")
+
+
+def _recorded_sha(info: Any) -> str | None:
+    """The checkpoint sha256 a sidecar or index entry records (None: it records none)."""
+    ckpt = info.get("checkpoint") if isinstance(info, dict) else None
+    sha = ckpt.get("sha256") if isinstance(ckpt, dict) else None
+    return sha if isinstance(sha, str) else None
+
+
+def _read_json(path: Path) -> Any:
+    """A JSON file's value, or None when it cannot be read."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
 @dataclass(frozen=True)
 class ShippedModel:
     domain: str
@@ -56,6 +86,20 @@ class ShippedModel:
     info: dict[str, Any]
     #: "model" (model.pt: the network `plad infer` uses) or "pretrained" (pretrained.pt, continued by pretraining)
     kind: str = "model"
+    #: what a ship did besides shipping, one line each (e.g. a damaged pair it did not keep in previous/)
+    notes: tuple[str, ...] = ()
+
+    def problem(self) -> str | None:
+        """Why the checkpoint is not the file its sidecar describes (one line), None when it is."""
+        want = _recorded_sha(self.info)
+        try:
+            got = sha256_file(self.checkpoint)
+        except OSError as err:
+            return f"{self.checkpoint}: cannot be read ({err.strerror or err.__class__.__name__})"
+        if got != want:
+            return (f"{self.checkpoint}: sha256 {got[:12]}... differs from its sidecar's {str(want)[:12]}... (a "
+                    f"damaged or replaced shipped model)")
+        return None
 
     @property
     def test(self) -> dict[str, Any]:
@@ -90,10 +134,22 @@ class ShippedModel:
 
 def shipped_model(domain: str, folder: Path | None = None) -> ShippedModel | None:
     """The shipped model of ``domain``, or ``None`` when none is shipped. A sidecar that is not
-    readable JSON is a :class:`ShipError`."""
-    base = (folder or shipped_dir()) / domain
+    readable JSON is a :class:`ShipError`. A ship killed between its two renames left the new checkpoint in
+    place and its sidecar pending: the pending sidecar is read then (it names that checkpoint)."""
+    return _pair(domain, (folder or shipped_dir()) / domain)
+
+
+def _pair(domain: str, base: Path) -> ShippedModel | None:
+    """The model whose pair is in ``base`` (a domain's folder, or its ``previous/``), as :func:`shipped_model`."""
     ckpt, side = base / CHECKPOINT, base / SIDECAR
-    if not (ckpt.is_file() and side.is_file()):
+    if not (ckpt.is_file() and (side.is_file() or _pending(side).is_file())):
+        return None
+    pending = _read_json(_pending(side)) if _pending(side).is_file() else None
+    if pending is not None and _recorded_sha(pending) is not None and \
+            _recorded_sha(pending) == _sha_or_none(ckpt) and isinstance(pending, dict) and \
+            pending.get("format") == FORMAT:
+        return ShippedModel(domain, ckpt, pending)
+    if not side.is_file():
         return None
     try:
         info = json.loads(side.read_text())
@@ -104,13 +160,62 @@ def shipped_model(domain: str, folder: Path | None = None) -> ShippedModel | Non
     return ShippedModel(domain, ckpt, info)
 
 
-def list_shipped(folder: Path | None = None) -> list[ShippedModel]:
-    """Every shipped model, by domain name."""
+def _sha_or_none(path: Path) -> str | None:
+    try:
+        return sha256_file(path)
+    except OSError:
+        return None
+
+
+def _settle(folder: Path) -> None:
+    """Finish or undo the replacement of the pair in ``folder`` that a killed ship left (under the domain's
+    exclusive lock): a complete pending pair, or a pending sidecar naming the checkpoint in place, is renamed
+    into place; anything else pending is removed."""
+    ckpt, side = folder / CHECKPOINT, folder / SIDECAR
+    new_ckpt, new_side = _pending(ckpt), _pending(side)
+    want = _recorded_sha(_read_json(new_side)) if new_side.is_file() else None
+    if want is not None and new_ckpt.is_file() and _sha_or_none(new_ckpt) == want:
+        os.replace(new_ckpt, ckpt)
+    if want is not None and not new_ckpt.exists() and _sha_or_none(ckpt) == want:
+        os.replace(new_side, side)
+    for leftover in (new_ckpt, new_side):
+        leftover.unlink(missing_ok=True)
+
+
+def _write_pair(folder: Path, write_checkpoint, sidecar: Callable[[Path], bytes]) -> None:
+    """Replace the pair in ``folder``: ``write_checkpoint(path)`` writes the new checkpoint (atomically) at a
+    pending name and ``sidecar(path)`` gives the sidecar's bytes for it; both are complete on disk before
+    either replaces an old file (see the module docstring)."""
+    from plad.fsutil import atomic_write_bytes
+
+    ckpt, side = folder / CHECKPOINT, folder / SIDECAR
+    new_ckpt, new_side = _pending(ckpt), _pending(side)
+    write_checkpoint(new_ckpt)
+    atomic_write_bytes(new_side, sidecar(new_ckpt))
+    os.replace(new_ckpt, ckpt)     # from here the pending sidecar names the checkpoint in place
+    os.replace(new_side, side)
+
+
+def list_shipped(folder: Path | None = None, errors: list[str] | None = None) -> list[ShippedModel]:
+    """Every shipped model, by domain name. ``errors``: where a damaged sidecar's one line goes (the others
+    are still listed); None: it is raised (:class:`ShipError`)."""
     base = folder or shipped_dir()
     if not base.is_dir():
         return []
-    found = (shipped_model(d.name, base) for d in sorted(base.iterdir()) if d.is_dir())
-    return [m for m in found if m is not None]
+    out = []
+    for d in sorted(base.iterdir()):
+        if not d.is_dir():
+            continue
+        try:
+            m = shipped_model(d.name, base)
+        except ShipError as err:
+            if errors is None:
+                raise
+            errors.append(str(err))
+            continue
+        if m is not None:
+            out.append(m)
+    return out
 
 
 def _git(root: Path, *args: str) -> str | None:
@@ -223,7 +328,7 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     same test (shapes, beam), unless ``force``; the replaced one is kept in ``<domain>/previous/``.
     """
     from plad.domains import get_domain
-    from plad.fsutil import atomic_write_text, file_lock
+    from plad.fsutil import file_lock
     from plad.model.checkpoint import CheckpointError, load_model, save_checkpoint
 
     checkpoint, metrics, root = Path(checkpoint), Path(metrics), Path(root)
@@ -248,26 +353,45 @@ def ship(domain: str, checkpoint: str | os.PathLike, metrics: str | os.PathLike,
     with file_lock(folder / LOCK) as held:   # the pair is written by one ship at a time
         if not held:
             raise ShipError(f"{folder}: cannot create {LOCK} there (a read-only folder?); pass --dest a writable one")
+        _settle(folder)   # a ship killed between its renames: finished (or undone) first
         current = shipped_model(domain, folder.parent)   # again under the lock: another ship may have come first
         if current is not None and not force:
             _refuse_worse(test, current, checkpoint, folder)
+        notes = []
+        keep = folder / PREVIOUS
         if current is not None:   # keep the model being replaced (one generation; git keeps the older ones)
-            keep = folder / PREVIOUS
-            keep.mkdir(exist_ok=True)
-            for name in (CHECKPOINT, SIDECAR):
-                shutil.copy2(folder / name, keep / f".{name}.part")
-                os.replace(keep / f".{name}.part", keep / name)
-        out = save_checkpoint(folder / CHECKPOINT, model, domain, names)
-        info = {
-            "format": FORMAT, "domain": domain, "method": method,
-            "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(out), "bytes": out.stat().st_size,
-                           "shipped_from": _portable(checkpoint, root)},
-            "config": model.cfg.to_dict(), "tokens": list(names),
-            "metrics": test, "metrics_file": _portable(metrics, root),
-            "provenance": provenance,
-        }
-        atomic_write_text(folder / SIDECAR, json.dumps(info, indent=1) + "\n")
-    return ShippedModel(domain, out, info)
+            problem = current.problem()
+            if problem is None:   # only a valid pair is a backup: a damaged one never replaces a good one
+                keep.mkdir(exist_ok=True)
+                _settle(keep)
+                sidecar_bytes = (folder / SIDECAR).read_bytes()
+                _write_pair(keep, lambda p: _copy(folder / CHECKPOINT, p), lambda p: sidecar_bytes)
+            else:
+                notes.append(f"the model replaced was not kept in {keep} ({problem}); "
+                             + (f"{keep} still holds the one before" if _pair(domain, keep) else "nothing was kept"))
+        info: dict[str, Any] = {}
+
+        def sidecar(path: Path) -> bytes:
+            info.update({
+                "format": FORMAT, "domain": domain, "method": method,
+                "checkpoint": {"file": CHECKPOINT, "sha256": sha256_file(path), "bytes": path.stat().st_size,
+                               "shipped_from": _portable(checkpoint, root)},
+                "config": model.cfg.to_dict(), "tokens": list(names),
+                "metrics": test, "metrics_file": _portable(metrics, root),
+                "provenance": provenance,
+            })
+            return (json.dumps(info, indent=1) + "\n").encode()
+
+        _write_pair(folder, lambda p: save_checkpoint(p, model, domain, names), sidecar)
+    return ShippedModel(domain, folder / CHECKPOINT, info, notes=tuple(notes))
+
+
+def _copy(source: Path, target: Path) -> None:
+    """``source``'s bytes as ``target``, atomically."""
+    from plad.fsutil import atomic_write
+
+    with open(source, "rb") as src:
+        atomic_write(target, lambda fh: shutil.copyfileobj(src, fh))
 
 
 # -- pretrained networks (supervised pretraining, SP), kept to be continued ------------------------------------
@@ -282,35 +406,112 @@ PRETRAINED_FORMAT = "plad-pretrained-1"
 MAX_BYTES = 20 * 1024 * 1024
 
 
+def _entry_problem(base: Path, domain: Any, info: Any) -> str | None:
+    """Why an index entry cannot name a pretrained network (one line), None when it can: a mapping with a
+    ``checkpoint`` of a ``file`` inside the folder of shipped models and a ``sha256``."""
+    where = f"{base / PRETRAINED_INDEX}: the entry of {domain!r}"
+    if not isinstance(info, dict):
+        return f"{where} is not a mapping"
+    ckpt = info.get("checkpoint")
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("file"), str) or not ckpt["file"] or \
+            not isinstance(ckpt.get("sha256"), str):
+        return f"{where} has no checkpoint file and sha256 (a damaged index)"
+    rel = Path(ckpt["file"])
+    if rel.is_absolute() or ".." in rel.parts:
+        return f"{where} names {ckpt['file']!r}, outside the folder of shipped models"
+    return None
+
+
+def _index_files_match(base: Path, index: dict[str, Any], pending: bool) -> bool:
+    """Whether every entry of ``index`` names a file (its pending version where ``pending`` and one exists)
+    of the recorded sha256."""
+    for domain, info in index["domains"].items():
+        if _entry_problem(base, domain, info) is not None:
+            return False
+        path = base / info["checkpoint"]["file"]
+        path = _pending(path) if pending and _pending(path).is_file() else path
+        if _sha_or_none(path) != info["checkpoint"]["sha256"]:
+            return False
+    return True
+
+
+def _valid_index(index: Any) -> bool:
+    return isinstance(index, dict) and index.get("format") == PRETRAINED_FORMAT and \
+        isinstance(index.get("domains"), dict)
+
+
 def _read_index(base: Path) -> dict[str, Any]:
+    """The index of pretrained networks; the pending one of a ship killed between its renames when every file
+    it names is in place (:func:`ship_pretrained`)."""
     path = base / PRETRAINED_INDEX
+    pending = _read_json(_pending(path)) if _pending(path).is_file() else None
+    if _valid_index(pending) and _index_files_match(base, pending, pending=False):
+        return pending
     if not path.is_file():
         return {"format": PRETRAINED_FORMAT, "domains": {}}
     try:
         index = json.loads(path.read_text())
     except (OSError, ValueError) as err:
         raise ShipError(f"{path}: not a readable index of pretrained networks ({err})") from None
-    if not isinstance(index, dict) or index.get("format") != PRETRAINED_FORMAT or \
-            not isinstance(index.get("domains"), dict):
+    if not _valid_index(index):
         raise ShipError(f"{path}: not an index of pretrained networks (expected format {PRETRAINED_FORMAT})")
     return index
 
 
+def _settle_index(base: Path) -> None:
+    """Finish or undo a pretrained network's replacement that a killed ship left (under the index's lock)."""
+    path = base / PRETRAINED_INDEX
+    pending = _read_json(_pending(path)) if _pending(path).is_file() else None
+    if _valid_index(pending) and _index_files_match(base, pending, pending=True):
+        for info in pending["domains"].values():
+            target = base / info["checkpoint"]["file"]
+            if _pending(target).is_file():
+                os.replace(_pending(target), target)
+        os.replace(_pending(path), path)
+    _pending(path).unlink(missing_ok=True)
+    for leftover in base.glob(f"*/{_pending(Path(PRETRAINED)).name}"):
+        leftover.unlink(missing_ok=True)
+
+
 def pretrained_model(domain: str, folder: Path | None = None) -> ShippedModel | None:
-    """The shipped pretrained network of ``domain`` (its index entry as ``info``), or None."""
+    """The shipped pretrained network of ``domain`` (its index entry as ``info``), or None. A damaged entry
+    or a missing file is a :class:`ShipError` (one line)."""
     base = folder or shipped_dir()
     info = _read_index(base)["domains"].get(domain)
     if info is None:
         return None
+    problem = _entry_problem(base, domain, info)
+    if problem is not None:
+        raise ShipError(problem)
     path = base / info["checkpoint"]["file"]
     if not path.is_file():
         raise ShipError(f"{path}: listed in {base / PRETRAINED_INDEX} but missing")
     return ShippedModel(domain, path, info, "pretrained")
 
 
-def list_pretrained(folder: Path | None = None) -> list[ShippedModel]:
+def list_pretrained(folder: Path | None = None, errors: list[str] | None = None) -> list[ShippedModel]:
+    """Every shipped pretrained network, by domain. ``errors``: where a damaged entry's one line goes (the
+    others are still listed); None: it is raised (:class:`ShipError`)."""
     base = folder or shipped_dir()
-    return [m for d in sorted(_read_index(base)["domains"]) if (m := pretrained_model(d, base)) is not None]
+    out = []
+    try:
+        domains = sorted(_read_index(base)["domains"])
+    except ShipError as err:
+        if errors is None:
+            raise
+        errors.append(str(err))
+        return []
+    for d in domains:
+        try:
+            m = pretrained_model(d, base)
+        except ShipError as err:
+            if errors is None:
+                raise
+            errors.append(str(err))
+            continue
+        if m is not None:
+            out.append(m)
+    return out
 
 
 def pretrained_checkpoint(domain: str, folder: Path | None = None) -> Path:
@@ -331,10 +532,7 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
     copied as it is (at most :data:`MAX_BYTES`) and the index entry names its sha256, config and provenance
     (segments and totals: epochs, shapes seen, CPU hours, the real-validation metric at each segment's end).
     """
-    import shutil
-    import tempfile
-
-    from plad.model.checkpoint import CheckpointError, read_checkpoint
+    from plad.model.checkpoint import CheckpointError, check_training_state, read_checkpoint
 
     checkpoint = Path(checkpoint)
     try:
@@ -346,6 +544,10 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
     prov = payload.get("provenance")
     if not (isinstance(prov, dict) and prov.get("segments")) or "optimizer" not in payload:
         raise ShipError(f"{checkpoint}: no training state with provenance segments (ship a pretraining's last.pt)")
+    try:   # the one check of a training state: what is shipped can be continued
+        check_training_state(checkpoint, payload)
+    except CheckpointError as err:
+        raise ShipError(str(err)) from None
     size = checkpoint.stat().st_size
     if size > MAX_BYTES:
         raise ShipError(f"{checkpoint}: {size / 2**20:.1f} MiB, above the {MAX_BYTES // 2**20} MiB a shipped file "
@@ -361,17 +563,23 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
     # the checkpoint and its index entry change together: under the domain's lock (which verify() shares),
     # and the index, which every domain shares, under its own
     with file_lock(base / domain / LOCK), file_lock(base / f".{PRETRAINED_INDEX}.lock"):
-        with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:   # atomic: never half a file
-            with open(checkpoint, "rb") as src:
-                shutil.copyfileobj(src, tmp)
-        os.replace(tmp.name, target)
+        _settle_index(base)   # a ship killed between its renames: finished (or undone) first
+        # both new files complete beside the old ones, then renamed into place, the checkpoint first (a kill
+        # between the renames leaves a pending index naming the checkpoint in place: read as the index)
+        _copy(checkpoint, _pending(target))
         info = {"domain": domain, "method": "sp",
-                "checkpoint": {"file": f"{domain}/{PRETRAINED}", "sha256": sha256_file(target), "bytes": size,
-                               "shipped_from": checkpoint.name},
+                "checkpoint": {"file": f"{domain}/{PRETRAINED}", "sha256": sha256_file(_pending(target)),
+                               "bytes": size, "shipped_from": checkpoint.name},
                 "config": payload.get("config"), "provenance": prov}
-        index = _read_index(base)
+        try:
+            index = _read_index(base)
+        except ShipError:   # a damaged index is replaced by one naming the networks whose entries are intact
+            index = {"format": PRETRAINED_FORMAT, "domains": {}}
+        index["domains"] = {d: e for d, e in index["domains"].items() if _entry_problem(base, d, e) is None}
         index["domains"][domain] = info
-        atomic_write_text(base / PRETRAINED_INDEX, json.dumps(index, indent=1) + "\n")
+        atomic_write_text(_pending(base / PRETRAINED_INDEX), json.dumps(index, indent=1) + "\n")
+        os.replace(_pending(target), target)
+        os.replace(_pending(base / PRETRAINED_INDEX), base / PRETRAINED_INDEX)
     return ShippedModel(domain, target, info, "pretrained")
 
 

@@ -20,7 +20,7 @@ from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
 from plad.layout import BEST, HISTORY, PROVENANCE, SUMMARY, Layout
 from plad.learn import distributed as dist
-from plad.learn.pretrain import PretrainConfig, pretrain
+from plad.learn.pretrain import PretrainConfig, check_epochs, pretrain
 from plad.learn.synthetic import load_programs
 from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
@@ -60,6 +60,13 @@ def tracked_pretrain(cfg: PretrainConfig, ctx: StageContext = StageContext()) ->
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     init = resolve_init(cfg, ctx.layout)
+    check_epochs(cfg, init)
+    if init is not None:   # the checkpoint to continue is checked before any MLflow run starts, too
+        from plad.domains import get_domain
+        from plad.learn.pretrain import read_init
+        from plad.model.network import ModelConfig
+
+        read_init(init, cfg, ModelConfig.for_domain(cfg.model, get_domain(cfg.domain)))
     if not dist.is_main():   # one MLflow run per training, rank 0's
         return pretrain(cfg, ctx.layout, init_path=init)
     out = ctx.layout.pretrain_dir(cfg.domain)

@@ -128,7 +128,9 @@ class CSG3D(Domain):
             path = Path(output)
             suffix = path.suffix.lower()
             if suffix == ".npy":
-                np.save(path, grid)
+                from plad.data.pictures import save_npy
+
+                save_npy(grid, path)
             elif suffix in (".ply", ".obj"):
                 export.save_mesh(grid, path)
             elif suffix == ".png":

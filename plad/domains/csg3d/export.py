@@ -31,7 +31,7 @@ def mesh_arrays(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def save_mesh(grid: np.ndarray, path: str | Path) -> None:
-    """Write the surface of a voxel grid as a triangle mesh (.ply or .obj) with open3d."""
+    """Write the surface of a voxel grid as a triangle mesh (.ply or .obj), atomically."""
     from plad.data.mesh import write_mesh
 
     write_mesh(*mesh_arrays(grid), path)

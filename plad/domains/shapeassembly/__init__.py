@@ -182,7 +182,9 @@ class ShapeAssembly(Domain):
             path = Path(output)
             suffix = path.suffix.lower()
             if suffix == ".npy":
-                np.save(path, grid)
+                from plad.data.pictures import save_npy
+
+                save_npy(grid, path)
             elif suffix in (".ply", ".obj"):
                 from plad.domains.shapeassembly.export import save_mesh
 

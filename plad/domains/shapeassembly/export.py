@@ -1,4 +1,5 @@
-"""Mesh (.ply/.obj via open3d) and three-view PNG output of oriented cuboids."""
+"""Mesh (.ply/.obj, :func:`plad.data.mesh.write_mesh`) and three-view PNG output of oriented cuboids, written
+atomically."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -24,7 +25,7 @@ def mesh_arrays(cuboids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def save_mesh(cuboids: np.ndarray, path: str | Path) -> None:
-    """Write the cuboids as one triangle mesh (.ply or .obj) with open3d."""
+    """Write the cuboids as one triangle mesh (.ply or .obj), atomically."""
     from plad.data.mesh import write_mesh
 
     write_mesh(*mesh_arrays(cuboids), path)
@@ -71,5 +72,6 @@ def save_views(cuboids: np.ndarray, path: str | Path, title: str | None = None) 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(str(path), dpi=100)
-    plt.close(fig)
+    from plad.data.pictures import save_figure
+
+    save_figure(fig, path, dpi=100)
