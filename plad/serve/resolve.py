@@ -6,8 +6,14 @@ In order:
 2. the registered champion ``models:/plad-<domain>@champion`` of the MLflow store, *if a
    store is configured*: ``$MLFLOW_TRACKING_URI`` is set (for a SQLite URI: and its database
    file exists), or ``./mlflow.db`` exists in the current directory (the store ``dvc repro``
-   writes there); and only if that store has the champion;
+   writes there); only if that store has the champion, and only if it was evaluated on the
+   domain's real, full test set (its version's or run's ``plad.test_set`` tag is ``full``:
+   :func:`plad.tracking.registry.evaluated_on`; a smoke run's models, measured on a few shapes,
+   are registered under names of their own anyway, e.g. ``plad-<domain>-smoke``);
 3. the model shipped with the package (:mod:`plad.shipped`).
+
+:func:`default_model` says which of 2 and 3 a domain gets and why, without downloading anything
+(``plad models`` prints it); :func:`resolve` downloads the champion it chose.
 
 A look-up never creates anything: an unconfigured store is not opened (opening a SQLite URI
 would create an empty database), and a champion is downloaded to a temporary folder.
@@ -24,7 +30,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 from plad.errors import RunFailure
-from plad.shipped import ShipError, pretrained_model, shipped_dir, shipped_model
+from plad.shipped import ShipError, ShippedModel, pretrained_model, shipped_dir, shipped_model
 
 TRACKING_ENV = "MLFLOW_TRACKING_URI"
 
@@ -72,6 +78,24 @@ class Choice:
         return self.ref if self.kind in ("mlflow", "champion") else None
 
 
+@dataclass(frozen=True)
+class Default:
+    """The model ``plad infer DOMAIN`` uses without ``--model``, before anything is downloaded.
+
+    ``kind``: ``champion``, ``shipped`` or ``none``; ``model``: the registered version
+    (``models:/plad-<domain>/<version>``), the shipped checkpoint's path, or ``""``; ``why``: one line
+    saying why this one (and why the champion is passed over, where it is)."""
+
+    kind: str
+    model: str
+    why: str
+    #: why the champion was passed over, one line each (empty when it is used or no store is configured)
+    notes: tuple[str, ...] = field(default=())
+    #: the champion's URI (kind ``champion``), or the shipped model (kind ``shipped``)
+    uri: str | None = None
+    shipped: ShippedModel | None = None
+
+
 def _download(uri: str) -> Path:
     from plad.tracking.registry import download_checkpoint
     from plad.tracking.store import StoreError
@@ -84,6 +108,62 @@ def _download(uri: str) -> Path:
         raise ModelError(str(err)) from None
     except ValueError as err:    # a logged model without a checkpoint
         raise ModelError(str(err)) from None
+
+
+def _champion(domain: str) -> tuple[str | None, str]:
+    """(``models:/plad-<domain>/<version>``, why it is the default) when the configured store's champion may
+    be ``plad infer``'s default; (None, why not) otherwise. Reads tags only (MLflow), downloads nothing."""
+    from plad.tracking.registry import FULL, PROFILE_TAG, SUBSET, champion_record, evaluated_on
+    from plad.tracking.store import StoreError
+
+    uri = champion_uri(domain)
+    name = uri.removeprefix("models:/").split("@", 1)[0]
+    try:
+        found = champion_record(name)
+    except StoreError as err:   # the store cannot be opened (one line naming it and what to do)
+        return None, f"no champion in the MLflow store ({err})"
+    if found is None:
+        return None, f"no champion in the MLflow store ({uri}: not registered in {configured_store()})"
+    version, tags = found
+    profile = tags.get(PROFILE_TAG) or "unknown"
+    test_set = evaluated_on(tags)
+    if test_set != FULL:
+        measured = "on a subset of the test set" if test_set == SUBSET else "on an unknown test set (no " \
+            "plad.test_set tag, and not a cpu or paper profile run)"
+        return None, (f"{uri} (version {version}, profile {profile}) was evaluated {measured}, so it is not a "
+                      f"default; --model {uri} uses it")
+    return f"models:/{name}/{version}", (f"{uri} (version {version}, profile {profile}): the MLflow store's "
+                                         f"champion, evaluated on the full test set")
+
+
+def _shipped(domain: str) -> ShippedModel | None:
+    """The fine-tuned network shipped for ``domain``, else its pretrained one (a domain that ships no
+    fine-tuned network yet), else None."""
+    try:
+        return shipped_model(domain) or pretrained_model(domain)
+    except ShipError as err:
+        raise ModelError(str(err)) from None
+
+
+def default_model(domain: str) -> Default:
+    """What ``plad infer DOMAIN`` uses without ``--model`` and why (:class:`Default`): the configured store's
+    champion if it was evaluated on the full test set, else the shipped model. Nothing is downloaded or
+    verified here (:func:`resolve` does both); a damaged shipped sidecar is a :class:`ModelError`."""
+    if configured_store() is None:
+        return _shipped_default(domain, (), "no MLflow store is configured")
+    found, why = _champion(domain)
+    if found is not None:
+        return Default("champion", found, why, uri=champion_uri(domain))
+    return _shipped_default(domain, (why,), why)
+
+
+def _shipped_default(domain: str, notes: tuple[str, ...], passed: str) -> Default:
+    """The shipped model as the default, the champion ``passed`` over (why, one line)."""
+    shipped = _shipped(domain)
+    if shipped is None:
+        return Default("none", "", f"no {domain} model: {passed}, and none is shipped in {shipped_dir()}", notes)
+    what = "pretrained network" if shipped.kind == "pretrained" else "model"
+    return Default("shipped", str(shipped.checkpoint), f"the shipped {what}, as {passed}", notes, shipped=shipped)
 
 
 def resolve(domain: str, model: str | None = None) -> Choice:
@@ -103,25 +183,24 @@ def resolve(domain: str, model: str | None = None) -> Choice:
             return Choice("mlflow", model, _download(model))
         raise ModelError(f"{model}: no such checkpoint file, and not an MLflow model URI (models:/NAME@ALIAS, "
                          "models:/NAME/VERSION, runs:/RUN/model)")
-    notes = []
-    store = configured_store()
-    if store is not None:
-        uri = champion_uri(domain)
+    default = default_model(domain)
+    notes = list(default.notes)
+    if default.kind == "champion":
         try:
-            return Choice("champion", uri, _download(uri))
+            # the version chosen, not the alias again: the alias may have moved since its tags were read
+            return Choice("champion", default.uri, _download(default.model))
         except ModelError as err:
             notes.append(f"no champion in the MLflow store ({err})")
-    try:
-        # the fine-tuned network, else the pretrained one (a domain that ships no fine-tuned network yet)
-        shipped = shipped_model(domain) or pretrained_model(domain)
-        if shipped is not None:
-            shipped.verify()
-    except ShipError as err:
-        raise ModelError(str(err)) from None
+            default = _shipped_default(domain, tuple(notes), notes[-1])
+    shipped = default.shipped
     if shipped is None:
-        where = "no MLflow store is configured" if store is None else notes[0]
+        where = "no MLflow store is configured" if not notes else notes[0]
         raise ModelError(f"no {domain} model: {where}, and none is shipped in {shipped_dir()}; pass --model a "
                          "checkpoint file, or train and register one with `dvc repro`")
+    try:
+        shipped.verify()
+    except ShipError as err:
+        raise ModelError(str(err)) from None
     return Choice("shipped", shipped.describe(), shipped.checkpoint, tuple(notes))
 
 

@@ -78,6 +78,7 @@ from plad.layout import (
 from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags, tracking_uri
+from plad.tracking.registry import model_name
 from plad.tracking.rows import PIPELINE, results_view_path
 
 
@@ -264,7 +265,8 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                     print(f"report: plad-{d}: no validated model; nothing registered", file=sys.stderr)
                     continue
                 key, val = entry["champion"]["method"], entry["champion"]["val"]
-                name = f"plad-{d}"
+                # a trial profile's models live under a name of their own (plad-<domain>-smoke): never the default
+                name = model_name(f"plad-{d}")
                 metric = get_domain(d).metric
                 checkpoint = ctx.layout.model(d, key)
                 if not checkpoint.exists():

@@ -19,9 +19,10 @@ from typing import Any
 
 import yaml
 
-from plad.config import profile_path
+from plad.config import load_params, profile_path
 from plad.fsutil import atomic_write_text
 from plad.layout import SP
+from plad.tracking.registry import FULL, SUBSET, TEST_SET_TAG, UNKNOWN, model_name, tag_version_with_run
 from plad.tracking.rows import (
     PIPELINE,
     RESULT,
@@ -66,7 +67,11 @@ def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, s
     profile's override file (:func:`plad.config.profile_path`) and the git
     revision (HEAD of the repository holding the params file, or ``nogit``),
     or ``$PLAD_PIPELINE_ID`` when set; ``plad.git_rev``; ``plad.profile``:
-    the params file's top-level ``profile`` value, else ``custom``.
+    the params file's top-level ``profile`` value, else ``custom``; ``plad.test_set``: ``full`` when the
+    params (profile applied) evaluate every domain on all of its real test shapes, ``subset`` when they
+    limit them (``prepare.limit``, an ``evaluate`` block's ``limit``: the smoke profile), ``unknown`` when
+    the params file cannot be read (:func:`evaluated_test_set`; a model a ``subset`` run registers lives under a
+    name of its own: :func:`plad.tracking.registry.model_name`).
     """
     path = Path(params_path)
     data = path.read_bytes() if path.is_file() else b""
@@ -84,7 +89,23 @@ def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, s
         data += b"\0" + overrides.read_bytes()
     pipeline = os.environ.get("PLAD_PIPELINE_ID") or \
         hashlib.sha256(data + b"\0" + rev.encode()).hexdigest()[:12]
-    return {"plad.pipeline": pipeline, "plad.git_rev": rev, "plad.profile": profile}
+    return {"plad.pipeline": pipeline, "plad.git_rev": rev, "plad.profile": profile,
+            TEST_SET_TAG: evaluated_test_set(path)}
+
+
+def evaluated_test_set(params_path: str | os.PathLike) -> str:
+    """Which test shapes the params file (its profile applied) evaluates: ``full`` (all of every domain's),
+    ``subset`` (a limit on the prepared data or on an evaluation: the smoke profile) or ``unknown`` (the file
+    is missing or cannot be resolved)."""
+    try:
+        params = load_params(params_path)
+    except Exception:  # a missing or broken params file is the config loader's error to report, not a tag's
+        return UNKNOWN
+    prepare = params.get("prepare") or {}
+    limits = list((prepare.get("limit") or {}).values()) if isinstance(prepare.get("limit"), dict) else \
+        [prepare.get("limit")]
+    limits += [block.get("limit") for block in (params.get("evaluate") or {}).values() if isinstance(block, dict)]
+    return SUBSET if any(limit is not None for limit in limits) else FULL
 
 
 # -- params ---------------------------------------------------------------------------------
@@ -430,8 +451,10 @@ class StageRun:
                   beam: int = 10) -> str:
         """Log the checkpoint as a pyfunc model (artifact path ``model``) of the innermost run.
 
-        Returns ``models:/<name>/<version>`` when ``registered_name`` is given
-        (the model is registered under it), else the logged model's URI.
+        Returns ``models:/<name>/<version>`` when ``registered_name`` is given (the model is registered under
+        it, or under ``<name>-<profile>`` when this run's params evaluate a subset of the test set:
+        :func:`plad.tracking.registry.model_name`; the version is tagged with the run's profile and test set),
+        else the logged model's URI.
         """
         current = self._current()
         active = mlflow_module().active_run()
@@ -440,7 +463,13 @@ class StageRun:
         checkpoint_path = Path(checkpoint_path)
         if not checkpoint_path.is_file():
             raise FileNotFoundError(f"{checkpoint_path}: no such checkpoint")
-        return log_pyfunc(checkpoint_path, registered_name=registered_name, beam=beam)
+        if registered_name is None:
+            return log_pyfunc(checkpoint_path, beam=beam)
+        tags = self._tags or self.tags   # the stage run's own (a nested child carries only some)
+        name = model_name(registered_name, tags)
+        uri = log_pyfunc(checkpoint_path, registered_name=name, beam=beam)
+        tag_version_with_run(name, uri.rsplit("/", 1)[-1], tags)
+        return uri
 
 
 # -- reading runs back ------------------------------------------------------------------------

@@ -119,3 +119,29 @@ def test_data_check_reports_a_missing_dataset_in_one_line(tmp_path):
     assert str(tmp_path) in res.stderr and "Traceback" not in res.stderr
     # one line for each missing source: the CAD file and the PartNet programs
     assert len(res.stderr.strip().splitlines()) == 2
+
+
+def test_help_lists_the_domains_and_one_line_per_command(monkeypatch, capsys):
+    """`plad --help` (an 80-column terminal) names every domain and gives each command one line, as
+    plad/serve/cli.py's docstring says; every command that docstring shows is listed."""
+    import re
+
+    from plad.domains import domain_names
+    from plad.serve import cli
+
+    monkeypatch.setenv("COLUMNS", "80")
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    assert all(line == line.rstrip() and len(line) <= 80 for line in text.splitlines())
+    assert f"DOMAIN is one of: {', '.join(domain_names())}." in " ".join(text.split())
+    section = text.split("\ncommands:\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    assert section[0].strip() == "COMMAND"
+    lines = section[1:]
+    found = [re.match(r"^    (\S+)  +\S", line) for line in lines]
+    assert all(found), lines   # a line that is not a command's: a help wrapped onto a second line
+    commands = [m.group(1) for m in found]
+    shown = set(re.findall(r"^    plad (\S+)", cli.__doc__, re.M))
+    assert commands == ["execute", "export", "score", "data", "infer", "refine", "search", "models"]
+    assert shown <= set(commands) and len(lines) == len(commands)
