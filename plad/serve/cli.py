@@ -252,25 +252,69 @@ def cmd_infer(args: argparse.Namespace) -> int:
             print(f"plad: error: {it.where}: {it.error}", file=sys.stderr)
         raise UsageError(f"none of the {len(items)} input shape(s) can be used; nothing was written")
     model, source = resolve_model(args.domain, args.model, default_device())   # ModelError: exit status 1
-    print(f"model: {source}", file=sys.stderr)
+    route, why = _route(args)
+    search = None
+    if route == "search":   # the path measured better on validation shapes: search from scratch, no network
+        from plad.rewrite import search_config
+
+        search = search_config(domain, effort=args.effort or "default")
+        print(f"route: search from scratch ({why})", file=sys.stderr)
+    else:
+        print(f"model: {source}", file=sys.stderr)
+        if args.route == "auto":
+            print(f"route: network ({why})", file=sys.stderr)
     try:
         run_dir = new_run_dir(args.out)
     except OSError as err:
         raise UsageError(f"--out {_quote(args.out)}: cannot make this run's folder ({err.strerror or err})") from None
-    results = infer_items(model, domain, items, beam, run_dir, refine=refine)
-    failed = 0
-    for r in results:
+    from plad.fsutil import WriteError
+
+    shown: list = []
+
+    def show(r) -> None:   # each result as soon as it is done: nothing computed is lost to a later failure
+        shown.append(r)
         where = _shown_as(r.item)
         if r.ok:
             notes = f"  ({'; '.join(r.item.notes)})" if r.item.notes else ""
-            print(f"{where}: {domain.metric.name} {r.value:.4f}  {r.seconds:.2f} s  {r.program}{notes}")
-        else:
-            failed += 1
-            print(f"plad: error: {where}: {r.item.error}", file=sys.stderr)
+            print(f"{where}: {domain.metric.name} {r.value:.4f}  {r.seconds:.2f} s  {r.program}{notes}", flush=True)
+        if not r.ok or r.write_error:
+            print(f"plad: error: {where}: {r.item.error or r.write_error}", file=sys.stderr, flush=True)
+
+    table = run_dir / "results.csv"
+    unwritten = None
+    try:
+        results = infer_items(model, domain, items, beam, run_dir, refine=refine, search=search, on_result=show)
+    except WriteError as err:   # results.csv: every result is printed above and every file written is kept
+        results, unwritten = shown, err.cause
+    failed = sum(1 for r in results if not r.ok)
+    lost = sum(1 for r in results if r.ok and r.write_error)
     seconds = sum(r.seconds for r in results if r.ok)
     print(f"{len(results) - failed} of {len(results)} shapes inferred{' and refined' if args.refine else ''} in "
-          f"{seconds:.1f} s; this run's rows: {run_dir / 'results.csv'}", file=sys.stderr)
+          f"{seconds:.1f} s" + (f" ({lost} of them not all written)" if lost else "") + "; "
+          + (f"this run's rows: {table}" if unwritten is None else f"the files written are kept in {_quote(run_dir)}"),
+          file=sys.stderr)
+    failed += lost
+    if unwritten is not None:
+        raise UsageError(f"{_quote(table)}: cannot write ({unwritten}); the results are printed above")
     return 2 if failed else 0
+
+
+def _route(args: argparse.Namespace) -> tuple[str, str]:
+    """(network | search, why) for ``plad infer``: ``--route``, or with ``auto`` the route measured for the
+    domain's shipped network (:mod:`plad.serve.route`) when that is the network in use."""
+    from plad.serve.resolve import default_model
+    from plad.serve.route import route_for
+
+    if args.route != "auto":
+        return args.route, f"--route {args.route}"
+    if not args.refine:
+        return "network", "--no-refine asks for the network's own programs"
+    if args.model is not None:
+        return "network", "--model names the network"
+    chosen = default_model(args.domain)
+    if chosen.kind != "shipped" or chosen.shipped is None or chosen.shipped.kind != "model":
+        return "network", "the network in use is not the shipped one"
+    return route_for(args.domain, chosen.shipped.info.get("checkpoint", {}).get("sha256"))
 
 
 def _quote(path: object) -> str:
@@ -370,11 +414,12 @@ def cmd_refine(args: argparse.Namespace) -> int:
     before = float(Scorer(domain, target).values([ids])[0])
     result = refine(domain, [ids], target, cfg.refine)
     text = domain.format(result.programs[0])
-    if out is not None:
-        write_output(out, text + "\n")
+    # the result first: a file that cannot be written (a full disk) is an error after it, never instead of it
     print(text)
     print(f"refined in {result.seconds:.1f} s", file=sys.stderr)
-    print(f"{domain.metric.name} {before:.6f} -> {float(result.values[0]):.6f}")
+    print(f"{domain.metric.name} {before:.6f} -> {float(result.values[0]):.6f}", flush=True)
+    if out is not None:
+        write_output(out, text + "\n")
     return 0
 
 
@@ -422,51 +467,85 @@ def cmd_search(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    """List the shipped and the registered models (the default one of each domain marked), or ship one."""
+    """List the shipped and the registered models (the default one of each domain marked, and why), or ship one."""
     if args.models_command == "ship":
         return _ship(args)
     if args.models_command == "ship-pretrained":
         return _ship_pretrained(args)
     from plad.domains import domain_names
-    from plad.serve.resolve import configured_store
+    from plad.serve.resolve import ModelError, configured_store, default_model
     from plad.shipped import describe_totals, list_pretrained, list_shipped, shipped_dir
 
     rows = []   # (domain, source, model, method, test, provenance)
-    for m in list_shipped():   # a damaged sidecar: ShipError, exit status 1
+    # damaged shipped files are listed with what is wrong (one line each, stderr) and make the status 1; the
+    # others are still listed
+    damaged: list[str] = []
+    for m in list_shipped(errors=damaged):
         t = m.test
         test = f"{t.get('metric', '?')} {t.get('mean', '?')} (n {t.get('n', '?')}, beam {t.get('beam', '?')})"
-        rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test, _provenance(m.info)))
+        problem = m.problem()
+        damaged += [problem] if problem else []
+        rows.append((m.domain, "shipped", str(m.checkpoint), m.info.get("method") or "-", test,
+                     f"DAMAGED: {problem}" if problem else _provenance(m.info)))
     # the pretrained networks: what they hold (the SP row of the results is their test metric)
-    for m in list_pretrained():
-        rows.append((m.domain, "pretrained", str(m.checkpoint), "sp", describe_totals(m), _provenance(m.info)))
+    for m in list_pretrained(errors=damaged):
+        problem = m.problem()
+        damaged += [problem] if problem else []
+        rows.append((m.domain, "pretrained", str(m.checkpoint), "sp", describe_totals(m),
+                     f"DAMAGED: {problem}" if problem else _provenance(m.info)))
     store = configured_store()
     if store is not None:   # MLflow is imported only to read a configured store
         from plad.tracking import registered_models
 
         for r in registered_models():
-            domain = r["name"].removeprefix("plad-")
             aliases = "".join(f"@{a}" for a in r["aliases"])
-            rows.append((domain if domain in domain_names() else r["name"], "registered",
+            where = [f"MLflow run {r['run_id']}"] if r.get("run_id") else []
+            where += [f"profile {r['profile']}"] if r.get("profile") else []
+            where += [f"{r['test_set']} test set"] if r.get("test_set") else []
+            rows.append((_registered_domain(r["name"], domain_names()), "registered",
                          f"models:/{r['name']}/{r['version']} {aliases}".rstrip(), r["method"] or "-",
-                         r["test"] or "-", f"MLflow run {r['run_id']}" if r.get("run_id") else ""))
-    # the model `plad infer DOMAIN` uses without --model: the champion, else the shipped one
-    default = {}
-    for domain, source, model, *_ in rows:
-        if source == "registered" and "@champion" in model or source == "shipped" and domain not in default:
-            default[domain] = model
+                         r["test"] or "-", ", ".join(where)))
+    # the model `plad infer DOMAIN` uses without --model (plad.serve.resolve, which `plad infer` follows): the
+    # champion if it was evaluated on the full test set, else the shipped one; and why
+    defaults, unusable = {}, {}
+    for d in domain_names():
+        try:
+            defaults[d] = default_model(d)
+        except ModelError as err:   # a damaged shipped file: said below, the listing goes on
+            unusable[d] = str(err)
     print(f"{'domain':<14} {'source':<10} {'method':<18} {'test metric':<36} model  (* = used by default)")
     for domain, source, model, method, test, provenance in sorted(rows, key=lambda r: (r[0], r[1] != "shipped")):
-        mark = "*" if default.get(domain) == model else " "
+        used = defaults.get(domain)
+        mark = "*" if used is not None and used.model and model.split(" ")[0] == used.model else " "
         print(f"{domain:<14} {source:<10} {method:<18} {test:<36} {mark}{model}")
         if provenance:
             print(f"{'':<14} provenance: {provenance}")
     if not rows:
         print("(no shipped or registered models)")
+    for domain, used in defaults.items():
+        if used.kind == "none":
+            print(f"plad infer {domain} has no model without --model: {used.why}")
+        else:
+            print(f"plad infer {domain} uses {used.model}: {used.why}")
+    for domain, why in unusable.items():
+        print(f"plad infer {domain} has no usable model without --model: {why}")
     env = os.environ.get("MLFLOW_TRACKING_URI")
     none = f"none ($MLFLOW_TRACKING_URI={env} does not exist yet)" if env else \
         "none configured ($MLFLOW_TRACKING_URI unset, no ./mlflow.db)"
     print(f"shipped models: {shipped_dir()}; MLflow store: {store or none}", file=sys.stderr)
-    return 0
+    for problem in dict.fromkeys([*damaged, *unusable.values()]):
+        print(f"plad: error: {problem}", file=sys.stderr)
+    return 1 if damaged or unusable else 0
+
+
+def _registered_domain(name: str, domains: list[str]) -> str:
+    """The domain of a registered model's name: ``plad-<domain>``, or ``plad-<domain>-<profile>`` (the models of
+    a profile that evaluates a few test shapes, :func:`plad.tracking.registry.model_name`); else the name."""
+    rest = name.removeprefix("plad-")
+    for domain in sorted(domains, key=len, reverse=True):
+        if rest == domain or rest.startswith(f"{domain}-"):
+            return domain
+    return name
 
 
 def _provenance(info: dict) -> str:
@@ -492,6 +571,8 @@ def _ship(args: argparse.Namespace) -> int:
     shipped = ship(args.domain, args.checkpoint, args.metrics, dest=args.dest, root=args.root,   # ShipError: 1
                    params=args.params, data_dir=args.data_dir, force=args.force)
     git = shipped.info["provenance"]["git"]
+    for note in shipped.notes:
+        print(f"plad: note: {note}", file=sys.stderr)
     print(f"shipped {shipped.checkpoint} ({shipped.info['checkpoint']['bytes']} bytes) and "
           f"{shipped.checkpoint.with_name('model.json')}: test {shipped.test.get('metric')} "
           f"{shipped.test.get('mean')}, git {git['revision']}{' (dirty)' if git['dirty'] else ''}")
@@ -509,10 +590,14 @@ def _ship_pretrained(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from plad.domains import domain_names
 
-    parser = argparse.ArgumentParser(prog="plad", description="Infer shape programs from shapes (PLAD).")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="plad", description=f"Infer shape programs from shapes (PLAD). DOMAIN is one of: "
+                                 f"{', '.join(domain_names())}. `plad COMMAND --help` gives a command's arguments.")
+    # one line per command: each help fits a line of an 80-column terminal (tests/plad/serve/test_cli.py)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", title="commands")
 
-    p = sub.add_parser("execute", help="execute a program and write the shape")
+    p = sub.add_parser("execute", help="execute a program and write the shape (PNG, NPY, mesh)",
+                       description="Execute a program and write the shape (or print it).")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("-o", "--output", help="output file, its type by suffix: .npy (the bool grid) for every "
@@ -520,26 +605,31 @@ def build_parser() -> argparse.ArgumentParser:
                    "Without it a 2D shape is printed as text, a 3D one summarized")
     p.set_defaults(func=cmd_execute)
 
-    p = sub.add_parser("export", help="write a program in another tool's format (e.g. OpenSCAD .scad), "
-                                      "for the domains that offer one")
+    p = sub.add_parser("export", help="write a program in another tool's format (.scad)",
+                       description="Write a program in another tool's format (e.g. OpenSCAD .scad), for the "
+                                   "domains that offer one.")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("--format", required=True, help="output format, e.g. scad")
     p.add_argument("-o", "--output", help="output file (default: standard output)")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("score", help="score predicted shapes against targets with the domain metric")
+    p = sub.add_parser("score", help="score predicted shapes against targets",
+                       description="Score predicted shapes against targets with the domain metric.")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("--pred", required=True, help=".png or .npy (N, *shape)")
     p.add_argument("--target", required=True, help=".png or .npy (N, *shape)")
     p.set_defaults(func=cmd_score)
 
-    p = sub.add_parser("data", help="check or download the real datasets")
+    p = sub.add_parser("data", help="check or download the real datasets",
+                       description="Check (found, verified, split sizes) or download the real datasets.")
     p.add_argument("action", choices=["check", "download"])
     p.add_argument("--data-dir", default=None, help="data directory (default: $PLAD_DATA_DIR or ./data/datasets)")
     p.set_defaults(func=cmd_data)
 
-    p = sub.add_parser("infer", help="infer programs for your own shapes (images, meshes, .npy; folders)")
+    p = sub.add_parser("infer", help="infer programs for your shapes (images, meshes, .npy)",
+                       description="Infer programs for your own shapes (images, meshes, .npy; folders) with the "
+                                   "shipped or a registered network, each then refined by search.")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="2D: .png/.jpg/... images or .npy; 3D: .obj/.ply/.off/.stl meshes or .npy voxels; "
@@ -554,13 +644,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rewrite each best-of-beam program (--effort best: every beam candidate) with the "
                         "rewriters (PO, pruning, insertion) before writing it: never worse, often much better, "
                         "slower (default); --no-refine: the network's beam alone")
+    p.add_argument("--route", choices=("auto", "network", "search"), default="auto",
+                   help="network (+ refinement) or search from scratch; auto (default): the path measured better "
+                        "for the domain's shipped network on validation shapes (plad/shipped/routes.json)")
     p.add_argument("--effort", default=None, metavar="LEVEL",
                    help="how hard to refine: fast (the best-of-beam program, refined as `plad search --effort "
                         "fast` refines), default (the best-of-beam program, up to 3 rounds) or best (every beam "
                         "candidate refined as for default, the best kept: slower, never worse); docs/inference.md")
     p.set_defaults(func=cmd_infer)
 
-    p = sub.add_parser("refine", help="rewrite a program towards a target shape (search from the program)")
+    p = sub.add_parser("refine", help="rewrite a program towards a target shape",
+                       description="Rewrite a program towards a target shape (search from the program).")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("program", help="program text (or a .txt file holding it)")
     p.add_argument("--target", required=True, help="the target shape: .png or .npy, as for plad score")
@@ -574,7 +668,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(repeatable)")
     p.set_defaults(func=cmd_refine)
 
-    p = sub.add_parser("search", help="search for programs of shapes from scratch, without a network")
+    p = sub.add_parser("search", help="search programs for shapes from scratch, no network",
+                       description="Search for programs of shapes from scratch, without a network.")
     p.add_argument("domain", choices=domain_names())
     p.add_argument("file", help="target shape(s): .png or .npy (N, *shape), as for plad score")
     p.add_argument("-o", "--output", help="also write the programs, one per line, to this file")
@@ -586,11 +681,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="search setting over the effort level's, e.g. insertions=5 or refine.rounds=1 (repeatable)")
     p.set_defaults(func=cmd_search)
 
-    p = sub.add_parser("models", help="list the shipped and the registered models with their test metrics; "
-                                      "`plad models ship` packages a trained checkpoint as a shipped model",
+    p = sub.add_parser("models", help="list the models and the default one; ship a model",
                        description="Without a subcommand: list the models shipped with PLAD and those registered "
                                    "in the MLflow store (if one is configured), with their test metrics; * marks "
-                                   "the one `plad infer DOMAIN` uses without --model.")
+                                   "the one `plad infer DOMAIN` uses without --model, and a line per domain says "
+                                   "which and why (a champion only if evaluated on the full test set). "
+                                   "`plad models ship` packages a trained checkpoint as a shipped model.")
     p.set_defaults(func=cmd_models, models_command=None)
     ms = p.add_subparsers(dest="models_command")
     q = ms.add_parser("ship", help="package a trained checkpoint as the shipped model of its domain")

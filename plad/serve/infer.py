@@ -24,10 +24,12 @@ the others.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,9 +40,9 @@ from tqdm import tqdm
 
 from plad.config import MAX_BEAM_ROWS
 from plad.data.inputs import Item
-from plad.data.pictures import save_comparison
+from plad.data.pictures import save_comparison, save_npy
 from plad.domains.base import Domain
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import WriteError, atomic_write_text, cause_of
 from plad.model.checkpoint import CheckpointError, load_model
 from plad.model.decode import infer_programs
 from plad.model.network import PLADNet
@@ -88,6 +90,10 @@ class Result:
     outputs: tuple[str, ...] = ()
     #: seconds spent on this shape (wall): its share of its batch's inference and refinement
     seconds: float = 0.0
+    #: why some of its output files could not be written (e.g. a full disk; one line), None when all were: its
+    #: program and value are still the result (printed, and in ``results.csv``), and the files that were written
+    #: are kept (every file is written atomically: none is half written)
+    write_error: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -95,20 +101,26 @@ class Result:
 
 
 def _write_outputs(domain: Domain, item: Item, ids: list[int], recon: np.ndarray, value: float,
-                   out: Path) -> tuple[str, ...]:
+                   out: Path, written: list[str] | None = None) -> tuple[str, ...]:
+    """Write a shape's files (each atomically), appending each to ``written`` once it is on disk."""
+    written = [] if written is None else written
     # every file is <run folder>/<name><suffix>: names are safe and unique (plad.data.inputs.read_inputs)
     # and nothing is derived with with_suffix, which would cut a name like "part.left" to "part"
     stem = out / item.name
     program = domain.format(ids)
     files = [out / f"{item.name}{suffix}" for suffix in (".txt", ".png", ".input.npy", ".recon.npy")]
     atomic_write_text(files[0], program + "\n")
+    written.append(str(files[0]))
     metric = domain.metric
     save_comparison([("input", item.shape), (f"program ({metric.name} {value:.3f})", recon)], files[1],
                     title=_wrap(program))
-    atomic_write(files[2], lambda fh: np.save(fh, item.shape))
-    atomic_write(files[3], lambda fh: np.save(fh, recon))
-    files += domain.export_files(ids, stem)
-    return tuple(str(f) for f in files)
+    written.append(str(files[1]))
+    save_npy(item.shape, files[2])
+    written.append(str(files[2]))
+    save_npy(recon, files[3])
+    written.append(str(files[3]))
+    written += map(str, domain.export_files(ids, stem))
+    return tuple(written)
 
 
 def _wrap(text: str, width: int = 90) -> str:
@@ -183,10 +195,18 @@ def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,
     return programs, values
 
 
-def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
+def infer_items(model: PLADNet | None, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
                 batch_size: int = 16, progress: bool = True,
-                refine: Refinement | RefineConfig | None = None) -> list[Result]:
+                refine: Refinement | RefineConfig | None = None, search=None,
+                on_result: Callable[[Result], None] | None = None) -> list[Result]:
     """Best-of-beam programs for the good items, their output files, and ``results.csv``.
+
+    ``on_result(result)`` is called for each item, in the items' order, as soon as it and every item before it
+    are done (their files written): a caller prints each result before any later one can fail. A shape whose
+    files cannot be written keeps its program (:attr:`Result.write_error`); ``results.csv`` is written last,
+    and when the run stops early (an error, an interrupt) with the rows of the items done so far, as far as
+    it can be; a failure to write it is a :class:`plad.fsutil.WriteError` raised after every result was handed
+    to ``on_result``.
 
     ``refine`` (a :class:`Refinement`, e.g. :func:`refinement` of an effort level; a
     :class:`plad.rewrite.RefineConfig` means its best-of-beam refinement; None: none): rewrite each shape's
@@ -194,23 +214,61 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
     ``plad infer`` does unless ``--no-refine``). Shapes are inferred and refined in batches (the rewriters
     batch every candidate of every shape: the four 2D examples took 2.7 s of CPU so, 4.0 s one at a time);
     each result's ``seconds`` is its share of its batch's time.
+
+    ``search`` (a :class:`plad.rewrite.SearchConfig`; the route :mod:`plad.serve.route` measured better for
+    the domain): the programs come from search from scratch instead, no network (``model`` may be None).
     """
     if refine is not None and not isinstance(refine, Refinement):
         refine = Refinement(refine)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    device = next(model.parameters()).device
+    device = next(model.parameters()).device if search is None else torch.device("cpu")
     results = {id(it): Result(it) for it in items}
     good = [it for it in items if it.error is None]
     batch_size = max(1, min(batch_size, MAX_BEAM_ROWS // beam))
+    done: set[int] = {id(it) for it in items if it.error is not None}
+    shown = 0   # items handed to on_result so far (in order)
+
+    def hand_over() -> None:
+        nonlocal shown
+        while shown < len(items) and id(items[shown]) in done:
+            if on_result is not None:
+                on_result(results[id(items[shown])])
+            shown += 1
+
+    try:
+        _infer_chunks(model, domain, good, beam, out, batch_size, progress, refine, search, device, results, done,
+                      hand_over)
+    except BaseException:   # keep the rows of the shapes done (their files are kept too), then stop
+        with contextlib.suppress(Exception):
+            write_csv([results[id(it)] for it in items if id(it) in done], domain, out / "results.csv")
+        raise
+    hand_over()
+    ordered = [results[id(it)] for it in items]
+    write_csv(ordered, domain, out / "results.csv")
+    return ordered
+
+
+def _infer_chunks(model, domain: Domain, good: list[Item], beam: int, out: Path, batch_size: int, progress: bool,
+                  refine, search, device, results: dict, done: set[int], hand_over: Callable[[], None]) -> None:
+    """The good items in batches: programs, values and files (:func:`infer_items`); each finished item's id goes
+    into ``done`` and ``hand_over()`` follows every batch."""
     with tqdm(total=len(good), desc="infer", unit="shape", disable=not progress or None) as bar:
         for start in range(0, len(good), batch_size):
             chunk = good[start:start + batch_size]
             began = time.perf_counter()
             targets = torch.from_numpy(np.stack([it.shape for it in chunk])).to(device)
-            inferred = infer_programs(model, domain, targets, beam)
-            programs, values, recons = inferred.programs, inferred.values.cpu(), inferred.shapes.cpu()
-            if refine is not None:
+            if search is not None:
+                from plad.rewrite import search as search_programs
+                from plad.rewrite.evaluate import Scorer
+
+                found = search_programs(domain, targets.cpu(), search)
+                programs, values = found.programs, found.values.cpu()
+                recons = Scorer(domain, targets.cpu()).outputs(programs)
+            else:
+                inferred = infer_programs(model, domain, targets, beam)
+                programs, values, recons = inferred.programs, inferred.values.cpu(), inferred.shapes.cpu()
+            if refine is not None and search is None:
                 from plad.rewrite.evaluate import Scorer
 
                 programs, values = refine_inferred(domain, inferred, targets.cpu(), refine)
@@ -222,14 +280,22 @@ def infer_items(model: PLADNet, domain: Domain, items: list[Item], beam: int, ou
                 r.program, r.value, r.seconds = domain.format(ids), value, share
                 if not recon.any():
                     it.notes.append("the inferred program executes to an empty shape")
+                written: list[str] = []
                 try:
-                    r.outputs = _write_outputs(domain, it, ids, recon, value, out)
-                except OSError as err:
-                    it.error = f"could not write its outputs ({err})"
+                    _write_outputs(domain, it, ids, recon, value, out, written)
+                except OSError as err:   # a full disk, a read-only folder: one line naming the file
+                    why = err if isinstance(err, WriteError) else cause_of(err)
+                    r.write_error = f"could not write its outputs ({why})"
+                r.outputs = tuple(written)
+                done.add(id(it))
             bar.update(len(chunk))
-    ordered = [results[id(it)] for it in items]
-    write_csv(ordered, domain, out / "results.csv")
-    return ordered
+            hand_over()
+
+
+def _csv_name(path: Path) -> str:
+    """A file name as ``results.csv`` holds it: valid UTF-8 always, the bytes of a name that is not UTF-8
+    written as ``\\xff`` escapes (``bad_\\xff\\xfe.png``)."""
+    return os.fsencode(str(path)).decode("utf-8", "backslashreplace")
 
 
 def write_csv(results: list[Result], domain: Domain, path: Path) -> None:
@@ -238,7 +304,9 @@ def write_csv(results: list[Result], domain: Domain, path: Path) -> None:
     w.writerow(["file", "index", "name", "status", domain.metric.name, "seconds", "program", "notes"])
     for r in results:
         it = r.item
-        w.writerow([str(it.source), "" if it.index is None else it.index, it.name, "ok" if r.ok else "error",
+        notes = it.error if it.error else "; ".join([*it.notes, *([r.write_error] if r.write_error else [])])
+        w.writerow([_csv_name(it.source), "" if it.index is None else it.index, it.name,
+                    "ok" if r.ok and not r.write_error else "error",
                     "" if r.value is None else f"{r.value:.6f}", f"{r.seconds:.3f}" if r.ok else "",
-                    r.program or "", it.error if it.error else "; ".join(it.notes)])
+                    r.program or "", notes])
     atomic_write_text(path, buf.getvalue())
