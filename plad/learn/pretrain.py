@@ -48,6 +48,7 @@ from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig
 from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
+from plad.learn.state import totals
 from plad.learn.synthetic import ExecutorPool, load_programs, make_batch
 from plad.learn.train import VAL_LOSS, TrainConfig, fit
 from plad.model.checkpoint import MAX_PARAMETERS, estimate_parameters, read_checkpoint
@@ -134,7 +135,8 @@ def check_epochs(cfg: PretrainConfig, init_path: Path | None) -> None:
 
 def read_init(path: Path, cfg: PretrainConfig, model_cfg: ModelConfig) -> dict:
     """The training state a continued pretraining starts from, checked against this run's settings."""
-    from plad.model.checkpoint import CheckpointError, check_training_state
+    from plad.learn.state import check_training_state
+    from plad.model.checkpoint import CheckpointError
 
     if not path.is_file():
         raise ConfigError(f"pretrain.{cfg.domain}.init: {path} not found (a pretraining's last.pt or a shipped "
@@ -185,17 +187,6 @@ def _end_metrics(history: list[dict]) -> dict:
     last = history[-1] if history else {}
     return {k: round(float(v), 6) for k, v in last.items()
             if k.startswith(("real_val_", "val_")) or k in ("prefix_gap", "train_loss", "lr")}
-
-
-def totals(segments: list[dict]) -> dict:
-    """What the segments hold together; ``cpu_hours`` sums the segments that know theirs (all: ``complete``)."""
-    known = [s["cpu_hours"] for s in segments if s.get("cpu_hours") is not None]
-    return {"segments": len(segments),
-            "epochs": sum(s["epochs"][1] - s["epochs"][0] + 1 for s in segments),
-            "steps": sum(s["steps"] for s in segments), "shapes_seen": sum(s["shapes_seen"] for s in segments),
-            "train_seconds": round(sum(s["train_seconds"] for s in segments), 1),
-            "cpu_hours": round(sum(known), 3), "cpu_hours_complete": len(known) == len(segments),
-            "gpu_hours": round(sum(s.get("gpu_hours") or 0 for s in segments), 3)}
 
 
 def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init_path: Path | None = None) -> dict:

@@ -31,7 +31,8 @@ from plad.device import FP32, Precision
 from plad.layout import BEST, LAST
 from plad.learn import distributed as dist
 from plad.learn.loop import Limits, Loop, LoopResult, LoopState, Objective, Unit, upgrade_state
-from plad.model.checkpoint import check_training_state, read_checkpoint, save_checkpoint
+from plad.learn.state import check_training_state
+from plad.model.checkpoint import read_checkpoint, save_checkpoint
 from plad.model.network import PLADNet
 
 log = logging.getLogger(__name__)

@@ -532,7 +532,8 @@ def ship_pretrained(domain: str, checkpoint: str | os.PathLike, *,
     copied as it is (at most :data:`MAX_BYTES`) and the index entry names its sha256, config and provenance
     (segments and totals: epochs, shapes seen, CPU hours, the real-validation metric at each segment's end).
     """
-    from plad.model.checkpoint import CheckpointError, check_training_state, read_checkpoint
+    from plad.learn.state import check_training_state
+    from plad.model.checkpoint import CheckpointError, read_checkpoint
 
     checkpoint = Path(checkpoint)
     try:

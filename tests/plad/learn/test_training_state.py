@@ -1,5 +1,5 @@
 """One check of a training state before any training continues from it or any command ships it (issue 53,
-reproductions 1 and 10): plad.model.checkpoint.check_training_state refuses, in one line naming what is wrong,
+reproductions 1 and 10): plad.learn.state.check_training_state refuses, in one line naming what is wrong,
 damaged weights, Adam moments, schedules, RNG states, loop states, histories and provenance, wherever they come
 from: ``pretrain.init`` (refused before anything trains), a run's own ``last.pt`` (never resumed), and
 ``plad models ship-pretrained`` (never shipped). The states the pretraining writes, and the shipped ones, pass.
@@ -18,8 +18,9 @@ from plad.config import ConfigError
 from plad.layout import LAST, Layout
 from plad.learn.curriculum import CurriculumConfig
 from plad.learn.pretrain import PretrainConfig, pretrain, read_init
+from plad.learn.state import check_training_state
 from plad.learn.train import TrainConfig
-from plad.model.checkpoint import CheckpointError, check_training_state, read_checkpoint
+from plad.model.checkpoint import CheckpointError, read_checkpoint
 from plad.model.network import Architecture, ModelConfig
 from tests.tiny import ARCHITECTURE
 
