@@ -299,15 +299,20 @@ def test_report_rebuilds_from_mlflow_alone(smoke_run, tmp_path):
 
 
 def test_report_registers_the_champion(smoke_run):
+    """The smoke profile evaluates a few test shapes: its champions live under plad-<domain>-smoke (issue 54),
+    never as plad-<domain>@champion, which `plad infer` would take."""
     work, env, *_ = smoke_run
     import mlflow
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    client = mlflow.MlflowClient()
     report = json.loads((work / "results" / "report.json").read_text())
     for domain in DOMAINS:
         champ = report["domains"][domain]["champion"]
-        version = mlflow.MlflowClient().get_model_version_by_alias(f"plad-{domain}", "champion")
+        version = client.get_model_version_by_alias(f"plad-{domain}-smoke", "champion")
         assert str(version.version) == champ["version"] and version.tags["plad.method"] == champ["method"]
+        assert version.tags["plad.profile"] == "smoke" and version.tags["plad.test_set"] == "subset"
+    assert not [m.name for m in client.search_registered_models() if m.name in {f"plad-{d}" for d in DOMAINS}]
 
 
 def test_smoke_repro_writes_the_rows_beyond_the_paper(smoke_run):
@@ -329,3 +334,18 @@ def test_smoke_repro_writes_the_rows_beyond_the_paper(smoke_run):
     table = (work / "results" / "table.md").read_text()
     assert "| search, no network |" in table and "Not computed" not in table
     assert (work / "results" / "amortization.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_smoke_repro_labels_the_training_shapes_and_teaches_a_network(smoke_run):
+    """Beyond the paper (issue 58): search labels of the first 12 training shapes of the labelling order, a
+    network taught by them from the shipped SP, and its test evaluation alone and refined."""
+    work, *_ = smoke_run
+    for domain in DOMAINS:
+        labels = json.loads((work / "data" / "labels" / f"{domain}.json").read_text())
+        assert labels["n"] == 12 and labels["rescored_max_difference"] == 0.0 and labels["chunks"] == 2
+        taught = json.loads((work / "results" / "finetune" / domain / "taught.json").read_text())
+        assert taught["key"] == "taught" and taught["units"] == 2 and taught["labels"] == 12
+        assert taught["init"] == "pretrained" and taught["stopped"] == "max_epochs"
+        for key in ("taught", "taught_refined"):
+            metrics = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())
+            assert metrics["method"] == "taught" and metrics["test"]["n"] > 0

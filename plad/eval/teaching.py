@@ -1,0 +1,108 @@
+"""The fit of a taught network beside its validation, against CPU hours of teaching (issue 58).
+
+Reads the histories of teach runs (``runs/finetune/<domain>/taught/history.csv``: one row per epoch, row 0
+the starting network) and draws, per run, the metric on a fixed sample of labelled training shapes (``fit``:
+greedy, ``fit_wide``: beam 10) and on the validation shapes (``val``) against the hours of the epochs
+(their own seconds summed: training and measuring, one thread), one panel per domain, with the labels' own
+metric on the fit sample (the ceiling, from the run's ``summary.json``) as a dotted line::
+
+    python -m plad.eval.teaching -o docs/teaching-fit.png runs/finetune/*/taught/history.csv
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import sys
+from pathlib import Path
+
+from plad.fsutil import atomic_write
+
+#: the curves of a history, with their line styles
+CURVES = (("fit", "fit: labelled training shapes, beam 1", "-"),
+          ("fit_wide", "fit: labelled training shapes, beam 10", "--"),
+          ("val", "validation", ":"))
+
+
+def curve(history: Path) -> dict[str, list[float]]:
+    """``{"hours", "epoch", "fit", "fit_wide", "val"}`` of one teach history (a missing value: NaN)."""
+    try:
+        with history.open(newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as err:
+        raise ValueError(f"{history}: cannot read ({err.strerror})") from None
+    if not rows or "unit" not in rows[0] or "val" not in rows[0]:
+        raise ValueError(f"{history}: not a teach history (no unit and val columns)")
+
+    def number(row: dict, key: str) -> float:
+        try:
+            return float(row.get(key) or "nan")
+        except ValueError:
+            return math.nan
+
+    out: dict[str, list[float]] = {"hours": [], "epoch": [], "fit": [], "fit_wide": [], "val": []}
+    total = 0.0
+    for row in rows:
+        seconds = number(row, "unit_seconds")
+        total += 0.0 if math.isnan(seconds) else seconds
+        out["hours"].append(total / 3600)
+        out["epoch"].append(number(row, "unit"))
+        for key in ("fit", "fit_wide", "val"):
+            out[key].append(number(row, key))
+    return out
+
+
+def plot(histories: list[Path], output: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = []
+    for h in histories:
+        summary_path = h.parent / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        domain = summary.get("domain") or h.parent.parent.name
+        runs.append((domain, curve(h), summary))
+    domains = sorted({d for d, _, _ in runs})
+    fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 4.2), squeeze=False)
+    for ax, domain in zip(axes[0], domains):
+        for d, c, summary in runs:
+            if d != domain:
+                continue
+            for key, label, style in CURVES:
+                ax.plot(c["hours"], c[key], style, marker="o", markersize=3, label=label)
+            ceiling = summary.get("fit_labels_mean")
+            if ceiling is not None:
+                ax.axhline(ceiling, color="gray", linestyle="dotted", label=f"labels on the fit sample ({ceiling:.3f})")
+            metric = summary.get("metric", "metric")
+            ax.set_ylabel(metric)
+        ax.set_title(f"{domain}: taught by search labels")
+        ax.set_xlabel("hours of teaching (one thread, wall clock)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write(output, lambda fh: fh.write(buf.getvalue()))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("histories", nargs="+", type=Path)
+    parser.add_argument("-o", "--output", type=Path, required=True)
+    args = parser.parse_args(argv)
+    try:
+        plot(args.histories, args.output)
+    except ValueError as err:
+        print(err, file=sys.stderr)
+        return 1
+    print(args.output)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
