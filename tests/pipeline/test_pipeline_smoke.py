@@ -92,7 +92,7 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     for domain in DOMAINS:
         keys = set(evaluated[evaluated["tags.plad.domain"] == domain]["tags.plad.method"])
         assert keys == {"sp", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
-                        *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10))}
+                        *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined"}
     finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.plad.round"].isna()]
     for domain in DOMAINS:
         mine = finetuned[finetuned["tags.plad.domain"] == domain]
@@ -129,7 +129,7 @@ def test_smoke_repro_top_level_is_the_results_table(smoke_run):
     assert set(top["tags.plad.row"]) == {"result", "pipeline"}          # no stage run at the top level
     rows = top[top["tags.plad.row"] == "result"]
     keys = {"sp", "floor", "search", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
-            *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10))}
+            *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined"}
     for domain in DOMAINS:
         mine = rows[rows["tags.plad.domain"] == domain]
         assert sorted(mine["tags.plad.method"]) == sorted(keys)          # one row each
