@@ -65,3 +65,27 @@ def csg2d_inputs(root: Path, datasets_dir: Path) -> Path:
     prepare(PrepareConfig(data_dir=str(datasets_dir), domains=["csg2d"]), layout)
     tiny_checkpoint(layout.model("csg2d"), "csg2d")
     return root
+
+
+def tiny_pretrain_config(epochs: int, **kw):
+    """A :class:`plad.learn.pretrain.PretrainConfig` of the tiny architecture on 2D CSG: ``epochs`` epochs of 4
+    steps of batch 8, one thread, on the CPU (``kw``: more keys)."""
+    from plad.learn.curriculum import CurriculumConfig
+    from plad.learn.pretrain import PretrainConfig
+    from plad.learn.train import TrainConfig
+    from plad.model.network import Architecture
+
+    return PretrainConfig(domain="csg2d", device="cpu", threads=1, val_metric_shapes=4, gap_programs=4,
+                          model=Architecture(**ARCHITECTURE), curriculum=CurriculumConfig(),
+                          train=TrainConfig(batch_size=8, steps_per_epoch=4, max_epochs=epochs, patience=100), **kw)
+
+
+def tiny_pretrained_root(root: Path) -> Path:
+    """``root`` as a layout root with 200 synthetic 2D programs and a one-epoch tiny pretraining."""
+    from plad.layout import Layout
+    from plad.learn.pretrain import pretrain
+    from plad.stages.synthesize import SynthesizeConfig, synthesize
+
+    synthesize(SynthesizeConfig(domain="csg2d", train_programs=200, val_programs=20), Layout(root))
+    pretrain(tiny_pretrain_config(1), Layout(root))
+    return root

@@ -202,12 +202,16 @@ def list_shipped(folder: Path | None = None, errors: list[str] | None = None) ->
     base = folder or shipped_dir()
     if not base.is_dir():
         return []
+    return _each([d.name for d in sorted(base.iterdir()) if d.is_dir()], lambda d: shipped_model(d, base), errors)
+
+
+def _each(domains: list[str], load, errors: list[str] | None) -> list[ShippedModel]:
+    """``load(domain)`` for every domain that has a model; a :class:`ShipError`'s line goes to ``errors`` (the
+    others are still listed), or is raised where ``errors`` is None."""
     out = []
-    for d in sorted(base.iterdir()):
-        if not d.is_dir():
-            continue
+    for d in domains:
         try:
-            m = shipped_model(d.name, base)
+            m = load(d)
         except ShipError as err:
             if errors is None:
                 raise
@@ -493,7 +497,6 @@ def list_pretrained(folder: Path | None = None, errors: list[str] | None = None)
     """Every shipped pretrained network, by domain. ``errors``: where a damaged entry's one line goes (the
     others are still listed); None: it is raised (:class:`ShipError`)."""
     base = folder or shipped_dir()
-    out = []
     try:
         domains = sorted(_read_index(base)["domains"])
     except ShipError as err:
@@ -501,17 +504,7 @@ def list_pretrained(folder: Path | None = None, errors: list[str] | None = None)
             raise
         errors.append(str(err))
         return []
-    for d in domains:
-        try:
-            m = pretrained_model(d, base)
-        except ShipError as err:
-            if errors is None:
-                raise
-            errors.append(str(err))
-            continue
-        if m is not None:
-            out.append(m)
-    return out
+    return _each(domains, lambda d: pretrained_model(d, base), errors)
 
 
 def pretrained_checkpoint(domain: str, folder: Path | None = None) -> Path:

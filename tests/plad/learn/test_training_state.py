@@ -16,30 +16,19 @@ import torch
 
 from plad.config import ConfigError
 from plad.layout import LAST, Layout
-from plad.learn.curriculum import CurriculumConfig
-from plad.learn.pretrain import PretrainConfig, pretrain, read_init
+from plad.learn.pretrain import pretrain, read_init
 from plad.learn.state import check_training_state
-from plad.learn.train import TrainConfig
 from plad.model.checkpoint import CheckpointError, read_checkpoint
 from plad.model.network import Architecture, ModelConfig
-from tests.tiny import ARCHITECTURE
+from tests.tiny import ARCHITECTURE, tiny_pretrain_config, tiny_pretrained_root
 
-
-def config(epochs, **kw):
-    return PretrainConfig(domain="csg2d", device="cpu", threads=1, val_metric_shapes=4, gap_programs=4,
-                          model=Architecture(**ARCHITECTURE), curriculum=CurriculumConfig(),
-                          train=TrainConfig(batch_size=8, steps_per_epoch=4, max_epochs=epochs, patience=100), **kw)
+config = tiny_pretrain_config
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A layout root with 200 synthetic 2D programs and a one-epoch tiny pretraining."""
-    from plad.stages.synthesize import SynthesizeConfig, synthesize
-
-    root = tmp_path_factory.mktemp("trained")
-    synthesize(SynthesizeConfig(domain="csg2d", train_programs=200, val_programs=20), Layout(root))
-    pretrain(config(1), Layout(root))
-    return root
+    return tiny_pretrained_root(tmp_path_factory.mktemp("trained"))
 
 
 def _moments(p, key, value):

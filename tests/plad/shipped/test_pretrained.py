@@ -8,11 +8,8 @@ import pytest
 import torch
 
 from plad.layout import LAST, Layout
-from plad.learn.curriculum import CurriculumConfig
 from plad.learn.pretrain import PretrainConfig, pretrain
-from plad.learn.train import TrainConfig
 from plad.model.checkpoint import read_checkpoint
-from plad.model.network import Architecture
 from plad.shipped import (
     PRETRAINED,
     PRETRAINED_INDEX,
@@ -22,24 +19,15 @@ from plad.shipped import (
     sha256_file,
     ship_pretrained,
 )
-from tests.tiny import ARCHITECTURE
+from tests.tiny import tiny_pretrain_config, tiny_pretrained_root
 
-
-def config(epochs, **kw):
-    return PretrainConfig(domain="csg2d", device="cpu", threads=1, val_metric_shapes=4, gap_programs=4,
-                          model=Architecture(**ARCHITECTURE), curriculum=CurriculumConfig(),
-                          train=TrainConfig(batch_size=8, steps_per_epoch=4, max_epochs=epochs, patience=100), **kw)
+config = tiny_pretrain_config
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A layout root with 200 synthetic 2D programs and a one-epoch pretraining."""
-    from plad.stages.synthesize import SynthesizeConfig, synthesize
-
-    root = tmp_path_factory.mktemp("trained")
-    synthesize(SynthesizeConfig(domain="csg2d", train_programs=200, val_programs=20), Layout(root))
-    pretrain(config(1), Layout(root))
-    return root
+    return tiny_pretrained_root(tmp_path_factory.mktemp("trained"))
 
 
 def test_ship_copies_the_state_and_indexes_its_provenance(trained, tmp_path):
