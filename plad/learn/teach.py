@@ -36,7 +36,7 @@ import torch
 
 from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
-from plad.layout import SUMMARY, Layout
+from plad.layout import LAST, SUMMARY, Layout
 from plad.learn.train import TrainConfig
 
 #: the method key of a taught network (its run folder and its evaluation)
@@ -166,6 +166,18 @@ def _write_history(path: Path, rows: list[dict]) -> None:
     atomic_write_text(path, buf.getvalue())
 
 
+def _resumes(last: Path, fingerprint: dict) -> bool:
+    """Whether :func:`plad.learn.train.fit` will continue ``last`` (written under the same ``fingerprint``)."""
+    from plad.model.checkpoint import CheckpointError, read_checkpoint
+
+    if not last.exists():
+        return False
+    try:
+        return read_checkpoint(last).get("fingerprint") == fingerprint
+    except CheckpointError:   # fit refuses a damaged state in its own words
+        return True
+
+
 def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -> dict:
     """Teach one domain's network, from the checkpoint ``start`` (what ``cfg.init`` names), on its search labels;
     returns the summary (a pure function of the config and the files it names: labels, prepared shapes, start)."""
@@ -221,9 +233,13 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
             row["fit_wide"] = mean_metric(m, domain, fit_real, cfg.fit_beam_wide, cfg.infer_batch)
         return row
 
+    # a last.pt of other work is not resumed (fit starts over): the labels, the start, the config
+    fingerprint = {"labels": sha256_file(labels_file), "init": network_digest(start), "n": n,
+                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
+    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
     history_path = out / HISTORY_FILE
     rows: list[dict] = []
-    if history_path.exists():
+    if history_path.exists() and _resumes(out / LAST, fingerprint):   # else the rows are of the other work
         with open(history_path, newline="") as fh:
             rows = [dict(r) for r in csv.DictReader(fh)]
 
@@ -240,10 +256,6 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
         t0 = time.perf_counter()
         model.eval()
         on_unit(0, {**validate(model), "unit_seconds": time.perf_counter() - t0})
-    # a last.pt of other work is not resumed (fit starts over): the labels, the start, the config
-    fingerprint = {"labels": sha256_file(labels_file), "init": network_digest(start), "n": n,
-                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
-    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
     result = fit(model, batches, validate, cfg.train, out, domain=domain.name, token_names=domain.tokens.names,
                  objective=Objective("val", metric.higher_is_better),
                  budget_seconds=budget_seconds(cfg.max_minutes), on_unit=on_unit, desc=f"teach {cfg.domain}",

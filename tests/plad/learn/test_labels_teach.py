@@ -111,6 +111,40 @@ def test_teaching_records_fit_beside_validation_and_resumes(tmp_path, tiny_check
         assert [int(r["unit"]) for r in csv.DictReader(fh)] == [0, 1, 2, 3]
 
 
+def _mark_start(history) -> None:
+    """Put a sentinel in the starting row's validation metric of ``history``."""
+    with open(history, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    rows[0]["val"] = "123.0"
+    with open(history, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _start_val(history) -> str:
+    with open(history, newline="") as fh:
+        return next(csv.DictReader(fh))["val"]
+
+
+def test_a_history_is_continued_only_with_the_run_it_belongs_to(tmp_path, tiny_checkpoint):
+    layout = _project(tmp_path)
+    _label(layout)
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    teach(_teach_cfg(init), init, layout, log=lambda line: None)
+    history = layout.finetune_dir("csg2d", "taught") / "history.csv"
+    _mark_start(history)
+    # the same work with one more epoch resumes: its rows are kept
+    more = {"batch_size": 4, "steps_per_epoch": 2, "max_epochs": 3, "patience": 5}
+    assert teach(_teach_cfg(init, train=more), init, layout, log=lambda line: None)["units"] == 3
+    assert _start_val(history) == "123.0"
+    # other work (another seed) starts over: the old rows go, its own start is measured
+    assert teach(_teach_cfg(init, seed=1), init, layout, log=lambda line: None)["units"] == 2
+    with open(history, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["unit"]) for r in rows] == [0, 1, 2] and float(rows[0]["val"]) != 123.0
+
+
 def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):
     layout = _project(tmp_path)
     init = tiny_checkpoint(tmp_path / "init.pt")
