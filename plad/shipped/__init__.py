@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from typing import Any
 
 from plad.errors import RunFailure
 from plad.fsutil import sha256_file
+from plad.provenance import code_state
 
 #: overrides the folder of shipped models (tests; a site that keeps its own)
 SHIPPED_ENV = "PLAD_SHIPPED_DIR"
@@ -222,14 +222,6 @@ def _each(domains: list[str], load, errors: list[str] | None) -> list[ShippedMod
     return out
 
 
-def _git(root: Path, *args: str) -> str | None:
-    try:
-        out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
-
-
 def _portable(path: Path, base: Path) -> str:
     """``path`` as the sidecar records it: relative to ``base`` (the layout root, the data directory) when
     inside it, else its file name; never a path of the machine it was shipped on (the checksums name the
@@ -264,10 +256,10 @@ def _provenance(domain: str, root: Path, params_path: Path, data_dir: str | None
     data = {"source": source, "files": files}
     if prepared.is_file():
         data["prepared"] = {str(prepared.relative_to(root)): sha256_file(prepared)}
-    status = _git(root, "status", "--porcelain", "--untracked-files=no")
+    # the git state every metrics file records (plad.provenance.code_state), under the sidecar's key names
+    code = code_state(str(root))
     return {"params_file": _portable(params_path, root), "profile": params.get("profile"), "params": sections,
-            "git": {"revision": _git(root, "rev-parse", "HEAD"), "dirty": bool(status) if status is not None else None},
-            "data": data}
+            "git": {"revision": code["commit"], "dirty": code["dirty"]}, "data": data}
 
 
 def _test_metrics(metrics_path: Path, domain: str, checkpoint: Path) -> tuple[dict[str, Any], str | None]:

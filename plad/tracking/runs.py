@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import subprocess
 import warnings
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -22,6 +21,7 @@ import yaml
 from plad.config import load_params, profile_path
 from plad.fsutil import atomic_write_text
 from plad.layout import SP
+from plad.provenance import code_state
 from plad.tracking.registry import FULL, SUBSET, TEST_SET_TAG, UNKNOWN, model_name, tag_version_with_run
 from plad.tracking.rows import (
     PIPELINE,
@@ -50,16 +50,6 @@ _PARAMS_PER_BATCH = 100
 
 
 # -- how runs are grouped -------------------------------------------------------------------
-def _git_rev(cwd: Path) -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True,
-                             text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return "nogit"
-    rev = out.stdout.strip()
-    return rev if out.returncode == 0 and rev else "nogit"
-
-
 def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, str]:
     """Tags shared by the runs of one ``dvc repro``.
 
@@ -75,7 +65,7 @@ def pipeline_tags(params_path: str | os.PathLike = "params.yaml") -> dict[str, s
     """
     path = Path(params_path)
     data = path.read_bytes() if path.is_file() else b""
-    rev = _git_rev(path.resolve().parent if path.parent.is_dir() else Path.cwd())
+    rev = code_state(str(path.resolve().parent if path.parent.is_dir() else Path.cwd()))["commit"] or "nogit"
     profile = "custom"
     if data:
         try:

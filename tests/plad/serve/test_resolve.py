@@ -85,7 +85,10 @@ def test_ship_writes_a_small_checkpoint_and_its_sidecar(trained, shipped):
         elif isinstance(v, str):
             yield v
     assert not [s for s in strings(info) if s.startswith("/") or str(REPO) in s]
-    assert set(prov["git"]) == {"revision", "dirty"}
+    # the git state a metrics file's provenance records, under the sidecar's names
+    from plad.provenance import code_state
+    state = code_state(str(trained))
+    assert prov["git"] == {"revision": state["commit"], "dirty": state["dirty"]}
     # the same weights as the trained checkpoint, without its training state
     shipped_net, _ = load_model(shipped / "csg2d" / "model.pt")
     trained_net, _ = load_model(trained / "runs/pretrain/csg2d/best.pt")
