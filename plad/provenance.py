@@ -11,8 +11,8 @@ it, untracked files there included. Result files written by a run (``results/``,
 count: a pipeline run modifies them stage after stage, and they do not change a number. ``params_hash``
 is a hash of the stage's resolved params (the config it built: ``base``, domain block, profile and
 ``--set`` overrides applied), so two numbers with the same hash come from the same settings.
-:func:`code_state` is the one home of the git state: a shipped model's sidecar and the MLflow runs' tags
-record the same.
+:func:`code_state` and :func:`params_hash` are the one home of both: a shipped model's sidecar records the
+same git state, and a stage's MLflow run folder the same params hash (:class:`plad.tracking.runs.StageRun`).
 ``wall_seconds`` is the time of the call that wrote the file.
 
 A rerun of a stage at the same commit, params and thread count gives the same numbers (issue 33);

@@ -21,7 +21,7 @@ import yaml
 from plad.config import load_params, profile_path
 from plad.fsutil import atomic_write_text
 from plad.layout import SP
-from plad.provenance import code_state
+from plad.provenance import code_state, params_hash
 from plad.tracking.registry import FULL, SUBSET, TEST_SET_TAG, UNKNOWN, model_name, tag_version_with_run
 from plad.tracking.rows import (
     PIPELINE,
@@ -124,10 +124,6 @@ def flatten_params(params: Mapping[str, Any] | Any, prefix: str = "") -> dict[st
     return out
 
 
-def _params_hash(flat: Mapping[str, str]) -> str:
-    return hashlib.sha256(json.dumps(flat, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def _tag_values(tags: Mapping[str, Any]) -> dict[str, str]:
     return {str(k)[:MAX_KEY_LENGTH]: str(v)[:MAX_TAG_VAL_LENGTH] for k, v in tags.items()}
 
@@ -217,6 +213,9 @@ class StageRun:
         self.row_id: str | None = None
         self._uri: str | None = None
         self.params = flatten_params(params if params is not None else {})
+        # the resolved params' hash, the number the stage's metrics files stamp (plad.provenance): a run
+        # folder's MLflow run is resumed only if it was started with the same one
+        self.params_hash = params_hash(params if params is not None else {})
         self.run_dir = Path(run_dir)
         self.extra_tags = dict(tags or {})
         self.experiment = experiment
@@ -260,7 +259,7 @@ class StageRun:
         except (OSError, ValueError, KeyError, TypeError):
             return None
         if (record.get("tracking_uri"), record.get("experiment_id"), record.get("params_hash")) != \
-                (uri, experiment_id, _params_hash(self.params)):
+                (uri, experiment_id, self.params_hash):
             return None
         try:
             run = mlflow_client.get_run(run_id)
@@ -315,7 +314,7 @@ class StageRun:
                 _log_params(self._run_id, self.params)
             atomic_write_text(self.run_file, json.dumps({
                 "run_id": self._run_id, "experiment_id": experiment_id, "tracking_uri": uri,
-                "params_hash": _params_hash(self.params), "stage": self.stage,
+                "params_hash": self.params_hash, "stage": self.stage,
                 "domain": self.domain, "method": self.method,
             }, indent=2) + "\n")
         except BaseException:

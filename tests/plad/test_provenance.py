@@ -1,13 +1,14 @@
-"""plad.provenance: the one home of the git state that metrics files, shipped models' sidecars and MLflow
-runs record."""
+"""plad.provenance: the one home of the git state and the params hash that metrics files, shipped models'
+sidecars and MLflow run folders record."""
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import subprocess
 
 import pytest
 
-from plad.provenance import code_state
+from plad.provenance import code_state, params_hash
 
 
 def _git(cwd, *args):
@@ -48,3 +49,20 @@ def test_code_state_is_dirty_for_code_and_params_not_for_results(tmp_path):
     outside = tmp_path / "outside"
     outside.mkdir()
     assert code_state(str(outside)) == {"commit": None, "dirty": None}
+
+
+@dataclasses.dataclass
+class _Cfg:
+    domain: str = "csg2d"
+    lr: float = 1e-3
+    sizes: tuple = (1, 2)
+
+
+def test_params_hash_is_of_the_values_whatever_holds_them():
+    cfg = _Cfg()
+    assert params_hash(cfg) == params_hash(dataclasses.asdict(cfg)) == params_hash({"sizes": (1, 2), "lr": 1e-3,
+                                                                                     "domain": "csg2d"})
+    assert params_hash(cfg) != params_hash(_Cfg(lr=2e-3))
+    assert params_hash({"a": 1}) != params_hash({"a": "1"})     # typed: a string is not the number
+    # the number committed metrics files carry for these params (canonical JSON: sorted keys, no spaces)
+    assert params_hash({"a": 1}) == "015abd7f5cc57a2d"

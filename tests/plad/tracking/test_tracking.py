@@ -166,6 +166,9 @@ def test_failed_run_is_resumed_unless_params_changed(store, client, tmp_path):
         pass
     assert second.resumed and second.run_id == first.run_id
     assert client.get_run(first.run_id).info.status == "FINISHED"
+    # the run folder keeps the params hash a stage's metrics files stamp: one number for one run's params
+    from plad.provenance import params_hash
+    assert json.loads((tmp_path / "mlflow_run.json").read_text())["params_hash"] == params_hash({"lr": 0.1})
 
     with pytest.raises(RuntimeError):
         with StageRun("train", "csg2d", {"lr": 0.1}, tmp_path) as third:
