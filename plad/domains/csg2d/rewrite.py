@@ -91,25 +91,17 @@ def _outside(edges: torch.Tensor, regions: list[torch.Tensor]) -> torch.Tensor:
 
 class CSG2DRewrite(RewriteSpace):
     screen_keep = 8
-    # greedy chain of up to 7 primitives, then one round of refinement (PO sweeps to a local
-    # optimum, pruning): on 100 CAD test shapes CD 1.178 -> 0.986; more rounds gain < 0.003
-    # and grafting (plad.rewrite.graft, 15 nearest sub-expressions of the batch's programs per node) in every
-    # refinement round, of a search and of a network's programs: on the same 100 shapes, one thread, CPU s per
-    # shape, fast 0.964 -> 0.938 (0.12 -> 0.15 s), default 0.851 -> 0.820 (0.31 -> 0.33 s), best 0.761 -> 0.737
-    # (3.1 -> 3.5 s). Refining a network's programs (plad infer), whose batch may be one drawing, grafts from the
-    # domain's own library too (graft_library.npz: sub-expressions of the programs search found for 2,000 training
-    # shapes): the shipped network's beam refined, batches of 25, 0.885 -> 0.819 (0.14 -> 0.24 s); of 1, 0.882 ->
-    # 0.818 (docs/inference.md). The search levels graft from it too: on the 100 shapes fast 0.938 -> 0.839,
-    # default 0.820 -> 0.786, best 0.737 -> 0.722 (3.36 s) at the same CPU time. The library file lies in the
-    # domain's folder, which every stage that searches lists among its dvc dependencies.
+    # a greedy chain of up to 7 primitives, then one round of refinement (more rounds gain little), grafting in
+    # every refinement round, from the batch's programs and from the domain's own library (graft_library.npz):
+    # grafting pays at every level for about a tenth more time, and the library is what a network's program
+    # refined alone (plad infer on one drawing) has to graft from. The library lies in this folder, which every
+    # stage that searches lists among its dvc dependencies. The measurements: docs/inference.md ("`plad search`
+    # and its effort").
     search_defaults = {"insertions": 7, "refine": {"rounds": 1, "graft": 15, "graft_library": "shipped"}}
     refine_defaults = {"graft": 15, "graft_library": "shipped"}
-    # effort levels (100 evenly spaced CAD test shapes, one thread, CPU s per shape; docs/inference.md): fast is
-    # the greedy search above (0.964, 0.13 s); default a beam of 2 over left-deep chains with every operator,
-    # its 2 best finds refined (0.851, 0.28 s; a beam of 3: 0.833, 0.37 s, too close to the 10 minutes that all
-    # 3,000 test shapes may take on 2 workers); best a beam of 16, its 16 best finds refined with a swap
-    # (plad.rewrite.swap) in their refinement (0.761, 2.4 s; all 3,000: 0.783, 3.06 s on a busy machine; a beam of 8,
-    # 8 refined: 0.781, 1.2 s, all 3,000: 0.810; 8 refined without the swap: 0.787, 1.08 s; 4 refined: 0.800, 0.78 s)
+    # effort levels (measured in docs/inference.md): fast is the search above; default a beam of 2, its 2 best
+    # finds refined, no wider so that all 3,000 test shapes search in 10 minutes on 2 workers; best refines
+    # all 16 finds of its beam, with a swap, since refining more of a beam pays more than widening it
     search_efforts = {"fast": {}, "default": {"beam_width": 2, "beam_refine": 2},
                       "best": {"beam_width": 16, "beam_refine": 16, "refine": {"swap": True}}}
 

@@ -62,23 +62,15 @@ class CSG3DRewrite(RewriteSpace):
     screen_keep = 1
     # the executor runs programs of any length (a left-deep chain of 25 primitives: 199 tokens)
     max_overshoot = 100
-    # up to 12 primitives, each tuned by +-1/+-2 coordinate descent until no gain (capped at 60
-    # moves), then one round of refinement: on 100 PartNet test shapes IoU 0.874 after the greedy
-    # phase, 0.884 after refinement
+    # up to 12 primitives, each tuned by +-1/+-2 coordinate descent until no gain (capped at 60 moves), then
+    # one round of refinement
     search_defaults = {"insertions": 12, "tune_sweeps": 60, "refine": {"rounds": 1}}
-    # effort levels (50 evenly spaced PartNet test shapes, one thread, CPU s per shape): fast skips the
-    # refinement; default is the search above (0.953, 0.19 s). best: that search refined for up to 3 rounds
-    # with a swap in each (plad.rewrite.swap: 0.957, 0.52 s; 0.932 on all 693), then a beam of 4 over partial
-    # programs whose 2 best finds are refined the same way and replace the greedy program where better
-    # (greedy_first): 0.946 on all 693 at 1.85 s (docs/inference.md); on 51 test shapes ranked 50-350 of the
-    # 693 by the greedy search, 0.903 -> 0.919 (the beam alone 0.911; its 4 best finds refined 0.915, 0.921
-    # with the greedy; 6 refine rounds 0.920; more insertion candidates, 3 components x 5 boxes, 0.920), on
-    # the 49 worst 0.726 -> 0.780.
-    # Most of the loss is the 12-primitive cap: the same search allowed 24 primitives reaches 0.985 on the
-    # 50 (0.870 on the 49 worst; docs/inference.md). So best also starts from the shape's bounding cuboid,
-    # which differences carve (seeded: 0.9495 on all 693 at 2.34 s), and grows one program to 16 cuboids
-    # (overshoot 28 tokens) that backward elimination brings back to 12 (both: 0.9505 at 3.02 s); each
-    # replaces the shape's program where better
+    # effort levels (measured in docs/inference.md): fast skips the refinement; default is the search above;
+    # best runs that search and a beam of 4 over partial programs (the tuned one-at-a-time insertion and the
+    # beam's lookahead win on different shapes), each refined for up to 3 rounds with a swap. Most of what it
+    # still loses is the 12-primitive cap, so it also starts from the shape's bounding cuboid, which
+    # differences carve (seeded), and from one program grown to 16 cuboids (overshoot 28 tokens) that backward
+    # elimination brings back to 12; each start replaces the shape's program where better
     search_efforts = {**RewriteSpace.search_efforts,
                       "best": {"beam_width": 4, "beam_refine": 2, "greedy_first": True, "seeded": True,
                                "overshoot": 28, "refine": {"rounds": 3, "swap": True}}}

@@ -57,15 +57,13 @@ class ShapeAssemblyRewrite(RewriteSpace):
     screen_keep = None
     search_defaults = {"insertions": MAX_CUBOIDS, "tune_sweeps": 4,
                        "refine": {"rounds": 1, "po_sweeps": 2, "wide": False, "insert": False}}
-    # effort levels (50 evenly spaced PartNet test shapes, one thread, CPU s per shape; docs/inference.md): fast
-    # skips the refinement; default is the greedy search above (0.885, 0.17 s); best a beam of 4 over partial
-    # programs, its 2 best finds refined (0.953, 0.74 s; a beam of 2, 1 refined: 0.947, 0.35 s; the greedy
-    # search with 3 rounds of wide PO and insertion: 0.895, 0.82 s). The default stays greedy: the search-seeded
-    # fine-tuning seeds with it, and the committed column was trained on its programs
+    # effort levels (measured in docs/inference.md): fast skips the refinement; default is the greedy search
+    # above; best a beam of 4 over partial programs, its 2 best finds refined (the beam's lookahead pays, more
+    # polishing of the greedy program does not). The default stays greedy: the search-seeded fine-tuning seeds
+    # with it, and the committed column was trained on its programs
     search_efforts = {**RewriteSpace.search_efforts, "best": {"beam_width": 4, "beam_refine": 2}}
-    # a network's program holds misplaced parts, which insertion (it only adds voxels) cannot undo: refining the
-    # shipped network's best of beam 10 on 30 evenly spaced test shapes (3 rounds, one thread), removal after
-    # each round's PO lifts 0.838 to 0.845 at 0.82 s per shape instead of 0.91 (docs/inference.md)
+    # a network's program holds misplaced parts, which insertion (it only adds voxels) cannot undo: removal
+    # after each round's PO scores better in less time (docs/inference.md)
     refine_defaults = {"remove": True}
 
     def __init__(self, domain):
