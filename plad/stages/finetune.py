@@ -53,7 +53,7 @@ class FinetuneStageConfig:
     precision: str = "fp32"
     threads: int | None = None
     seed: int = 0
-    #: use only the first N training / validation shapes (None: all)
+    #: use only N training / validation shapes, evenly spaced over each split (None: all; :func:`load_shapes`)
     train_limit: int | None = None
     val_limit: int | None = None
     #: wall-clock safety net of every method, in minutes (None: none): the rounds and epochs fix the work
