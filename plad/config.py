@@ -43,6 +43,14 @@ PIPELINE_KEYS = ("profile", "domains", "methods", "beams")
 #: One section per DVC stage (and the Prefect flows').
 STAGE_SECTIONS = ("prepare", "synthesize", "pretrain", "evaluate", "search_only", "label", "teach", "finetune",
                   "report", "flows")
+#: The config class each section builds, as ``module:Class`` (imported only when asked for: most import torch).
+SECTION_CLASSES = {
+    "prepare": "plad.stages.prepare:PrepareConfig", "synthesize": "plad.stages.synthesize:SynthesizeConfig",
+    "pretrain": "plad.learn.pretrain:PretrainConfig", "evaluate": "plad.stages.evaluate:EvaluateConfig",
+    "search_only": "plad.stages.search_only:SearchOnlyConfig", "label": "plad.learn.labels:LabelConfig",
+    "teach": "plad.learn.teach:TeachConfig", "finetune": "plad.stages.finetune:FinetuneStageConfig",
+    "report": "plad.stages.report:ReportConfig", "flows": "flows.finetune:FlowsConfig",
+}
 #: Top-level keys a params file may have.
 SECTIONS = {*PIPELINE_KEYS, *STAGE_SECTIONS}
 #: Sections with a ``base`` block and one block per domain (DVC stages ``<stage>@<domain>``).
@@ -50,6 +58,14 @@ PER_DOMAIN = ("synthesize", "pretrain", "evaluate", "search_only", "label", "tea
 BASE = "base"
 #: Top-level keys handed to a section as its keys of the same name (their one home is the top level).
 INJECTED = {"prepare": ("domains",), "report": ("domains", "profile", "beams")}
+
+
+def section_class(name: str) -> type:
+    """The config class of stage section ``name`` (:data:`SECTION_CLASSES`; ``KeyError`` for another name)."""
+    import importlib
+
+    module, attr = SECTION_CLASSES[name].split(":")
+    return getattr(importlib.import_module(module), attr)
 
 
 def profile_path(params_path: str | os.PathLike, profile: str) -> Path:

@@ -9,6 +9,7 @@
     plad search DOMAIN shape.npy [--effort fast|default|best] [--set insertions=8]
     plad models
     plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
+    plad config finetune.csg3d [--profile smoke] [--set key=lest]
 
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output
@@ -28,6 +29,7 @@ from pathlib import Path
 # The parser, --help, argument errors, `plad models` and `plad data check` import neither
 # torch, MLflow nor open3d (a test checks it): every command imports what it needs itself.
 from plad.errors import BadInput, one_line
+from plad.serve import show_config
 
 
 class UsageError(BadInput):
@@ -709,6 +711,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("checkpoint", help="the pretraining's state, e.g. runs/pretrain/DOMAIN/last.pt")
     q.add_argument("--dest", default=None, help="folder of shipped models (default: the package's plad/shipped, "
                                                 "or $PLAD_SHIPPED_DIR)")
+    show_config.add_parser(sub)
     return parser
 
 

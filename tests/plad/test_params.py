@@ -14,20 +14,10 @@ PROFILES = ("cpu", "smoke", "paper")
 
 
 def stage_classes():
-    from flows.finetune import FlowsConfig
-    from plad.learn.labels import LabelConfig
-    from plad.learn.pretrain import PretrainConfig
-    from plad.learn.teach import TeachConfig
-    from plad.stages.evaluate import EvaluateConfig
-    from plad.stages.finetune import FinetuneStageConfig
-    from plad.stages.prepare import PrepareConfig
-    from plad.stages.report import ReportConfig
-    from plad.stages.search_only import SearchOnlyConfig
-    from plad.stages.synthesize import SynthesizeConfig
+    from plad.config import SECTION_CLASSES, section_class
 
-    return {"prepare": PrepareConfig, "synthesize": SynthesizeConfig, "pretrain": PretrainConfig,
-            "evaluate": EvaluateConfig, "search_only": SearchOnlyConfig, "finetune": FinetuneStageConfig,
-            "report": ReportConfig, "flows": FlowsConfig, "label": LabelConfig, "teach": TeachConfig}
+    assert tuple(SECTION_CLASSES) == STAGE_SECTIONS   # every stage section names the class it builds
+    return {name: section_class(name) for name in STAGE_SECTIONS}
 
 
 def project(tmp_path: Path, profile: str = "cpu", params: dict | None = None, profiles: dict | None = None) -> Path:

@@ -143,5 +143,5 @@ def test_help_lists_the_domains_and_one_line_per_command(monkeypatch, capsys):
     assert all(found), lines   # a line that is not a command's: a help wrapped onto a second line
     commands = [m.group(1) for m in found]
     shown = set(re.findall(r"^    plad (\S+)", cli.__doc__, re.M))
-    assert commands == ["execute", "export", "score", "data", "infer", "refine", "search", "models"]
+    assert commands == ["execute", "export", "score", "data", "infer", "refine", "search", "models", "config"]
     assert shown <= set(commands) and len(lines) == len(commands)
