@@ -32,7 +32,14 @@ from plad.domains import get_domain
 from plad.fsutil import atomic_write
 from plad.layout import FLOOR, METRICS, SEARCH, STATE, SUMMARY, Layout, eval_key
 from plad.learn.loop import read_state, upgrade_summary
-from plad.tracking import DEFAULT_EXPERIMENT, RunRecord, find_experiment, latest_finished_run, metric_history
+from plad.tracking import (
+    PIPELINE_EXPERIMENT,
+    RunRecord,
+    domain_experiment,
+    find_experiments,
+    latest_finished_run,
+    metric_history,
+)
 
 LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
           "lest_st_ws": "LEST+ST+WS", SEARCH: "search, no network",
@@ -94,10 +101,17 @@ def floor_from_files(domain: str, layout: Layout) -> float | None:
     return test["mean"] if test else None
 
 
+def domain_experiments(domain: str, experiment: str | None = None) -> list[str]:
+    """The ids of the experiments that hold a domain's stage runs: ``experiment`` when given, else the domain's
+    own (``plad-<domain>``) and ``plad``, which held every domain's runs before each had its own (so a store
+    written by an older version still gives its report); ``LookupError`` when none exists."""
+    return find_experiments([experiment] if experiment else [domain_experiment(domain), PIPELINE_EXPERIMENT])
+
+
 def floor_from_mlflow(domain: str, experiment: str | None = None) -> float | None:
     """The same from the MLflow store: the floor metric logged by the latest SP evaluation run."""
-    experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)
-    run = latest_finished_run(experiment_id, {"plad.stage": "evaluate", "plad.method": "sp", "plad.domain": domain})
+    experiment_ids = domain_experiments(domain, experiment)
+    run = latest_finished_run(experiment_ids, {"plad.stage": "evaluate", "plad.method": "sp", "plad.domain": domain})
     return run.metrics.get(f"floor_test_{get_domain(domain).metric.name}") if run else None
 
 
@@ -118,14 +132,14 @@ def from_mlflow(domain: str, keys: list[str], experiment: str | None = None) -> 
     direction (the selected model), not the value at the highest step (the last round's).
     """
     try:
-        experiment_id = find_experiment(experiment or DEFAULT_EXPERIMENT)
+        experiment_ids = domain_experiments(domain, experiment)
     except LookupError as err:   # no experiment in the store: nothing was tracked there
         raise DataError("MLflow", str(err)) from None
     scorer = get_domain(domain).metric
     metric = scorer.name
 
     def latest(stage: str, key: str) -> RunRecord | None:
-        return latest_finished_run(experiment_id, {"plad.stage": stage, "plad.method": key, "plad.domain": domain})
+        return latest_finished_run(experiment_ids, {"plad.stage": stage, "plad.method": key, "plad.domain": domain})
 
     out = []
     for key in keys:

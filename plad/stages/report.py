@@ -79,7 +79,7 @@ from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
 from plad.tracking import StageRun, champion_tags, set_champion, set_version_tags, tracking_uri
 from plad.tracking.registry import model_name
-from plad.tracking.rows import PIPELINE, results_view_path
+from plad.tracking.rows import PIPELINE, runs_path
 
 
 @dataclass
@@ -296,8 +296,11 @@ def tracked_report(cfg: ReportConfig, ctx: StageContext = StageContext()) -> dic
                       f"as {name}@champion{was}", file=sys.stderr)
             atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")
             run.log_row_artifact(out / REPORT)   # with the champions
-        print(f"report: MLflow's results view: `mlflow ui --backend-store-uri {tracking_uri()}`, then "
-              f"http://127.0.0.1:5000/{results_view_path(run.experiment_id)}", file=sys.stderr)
+        # each domain's experiment is its comparison (one metric per experiment); its runs page, without the
+        # GenAI/Model training switch (MLflow 3.17 opens an experiment on GenAI until switched)
+        pages = ", ".join(f"{d} http://127.0.0.1:5000/{runs_path(run.experiment_of(d))}" for d in cfg.domains)
+        print(f"report: MLflow: `mlflow ui --backend-store-uri {tracking_uri()}`, then Model training > "
+              f"plad-<domain> ({pages})", file=sys.stderr)
     return summary
 
 

@@ -5,11 +5,12 @@ so ``import plad.tracking`` stays cheap):
 
 * :mod:`plad.tracking.store`: where the store is (``$MLFLOW_TRACKING_URI`` or
   ``./mlflow.db``), opening it (:func:`open_store`: a new SQLite store created once under a lock,
-  a broken one a one-line :class:`StoreError`) and the experiment;
+  a broken one a one-line :class:`StoreError`) and the experiments: ``plad-<domain>`` per domain
+  (:func:`domain_experiment`), ``plad`` for the pipeline runs (:data:`PIPELINE_EXPERIMENT`);
 * :mod:`plad.tracking.runs`: :class:`StageRun`, one run per stage execution
   (resumable, nested child runs per round), and reading finished runs back;
-* :mod:`plad.tracking.rows`: the experiment's top level, one run per (domain,
-  method) with its stage runs nested under it, and the experiment's kind and
+* :mod:`plad.tracking.rows`: a domain experiment's top level, one run per method
+  with its stage runs nested under it, and the experiments' kind, description and
   saved results view;
 * :mod:`plad.tracking.registry`: champions, version tags, model URIs
   resolved to checkpoint files;
@@ -40,7 +41,15 @@ from plad.tracking.runs import (
     pipeline_tags,
 )
 from plad.tracking.serving import legacy_pyfunc_class, load_checkpoint_pyfunc, load_registered, pip_requirements
-from plad.tracking.store import DEFAULT_EXPERIMENT, StoreError, find_experiment, open_store, tracking_uri
+from plad.tracking.store import (
+    PIPELINE_EXPERIMENT,
+    StoreError,
+    domain_experiment,
+    find_experiment,
+    find_experiments,
+    open_store,
+    tracking_uri,
+)
 
 
 def __getattr__(name: str) -> Any:
@@ -51,8 +60,9 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["DEFAULT_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun", "StoreError",
-           "champion_tags", "download_checkpoint", "find_experiment", "flatten_params", "is_model_uri",
+__all__ = ["PIPELINE_EXPERIMENT", "RUN_FILE", "ChildRun", "PladPyfuncModel", "RunRecord", "StageRun", "StoreError",
+           "champion_tags", "domain_experiment", "download_checkpoint", "find_experiment", "find_experiments",
+           "flatten_params", "is_model_uri",
            "latest_finished_run", "legacy_pyfunc_class", "load_checkpoint_pyfunc", "load_registered",
            "metric_history", "open_store", "pip_requirements", "pipeline_tags", "registered_models", "set_champion",
            "set_version_tags", "tracking_uri"]

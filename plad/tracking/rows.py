@@ -1,26 +1,33 @@
-"""The top level of the MLflow experiment: one run per row of the results table, the stage runs nested under it.
+"""The top level of each domain's MLflow experiment: one run per row of the results table, stage runs nested under it.
 
-MLflow's experiment page lists the top-level runs of an experiment, each with its nested runs folded
-under it. So that this list reads as the results table, every stage run (:class:`plad.tracking.StageRun`)
-is started under a *row run*, one per ``(profile, domain, method)`` (``method``: a result key, e.g. ``sp``,
-``lest_st``, ``search``, ``floor``, ``lest_st_ws_search_beam5``; the rows of ``results/table.md``):
+Every domain has its experiment, ``plad-<domain>`` (:func:`plad.tracking.store.domain_experiment`), so that a
+column or a chart of one experiment compares one metric (Chamfer distance in 2D, IoU in 3D) and a group of runs
+never averages two. MLflow's experiment page lists the top-level runs of an experiment, each with its nested
+runs folded under it. So that this list reads as the domain's column of the results table, every stage run
+(:class:`plad.tracking.StageRun`) is started under a *row run*, one per ``(profile, domain, method)``
+(``method``: a result key, e.g. ``sp``, ``lest_st``, ``search``, ``floor``, ``lest_st_ws_search_beam5``; the
+rows of ``results/table.md``):
 
-* named ``<domain> · <method> · <metric> <test value>`` once its test metric is known, which MLflow's
-  default table shows without any column chosen (metric columns are hidden until picked there);
+* named ``<method> · <test value>`` once its test metric is known (the experiment is the domain, its
+  description names the metric): MLflow's runs page shows no metric column until one is picked there, and
+  MLflow 3.17 has no per-experiment default columns, so the name is what the default page shows; its name
+  column is 190 px wide, about 19 characters, hence no domain or metric name in it;
 * carrying its headline numbers under the same names in every domain (:data:`TEST`, :data:`VAL`,
   :data:`SECONDS_PER_SHAPE`, :data:`TRAIN_SECONDS`; the stop reason as the tag :data:`STOPPED`), so that
-  sorting, "group by" ``plad.domain`` and the chart view compare methods directly; the tags
-  ``plad.metric`` and ``plad.better`` say what the test metric is and which way is better;
+  sorting and the chart view compare methods directly; the tags ``plad.metric`` and ``plad.better`` say what
+  the test metric is and which way is better;
 * the status of its latest stage run.
 
 The rows of one profile are shared by every pipeline run of that profile (a re-run stage updates its row;
 its earlier stage runs stay nested under it), as DVC's outputs are: the top level holds the latest
-results, one row per method, not one per commit. The *pipeline run* of a profile holds the report: the
-report stage runs under it and logs ``table.md``, ``convergence.png`` and ``amortization.png`` to it.
+results, one row per method, not one per commit. The *pipeline run* of a profile, in the experiment
+``plad`` (:data:`plad.tracking.store.PIPELINE_EXPERIMENT`), holds the report: the report stage runs under
+it and logs ``table.md``, ``convergence.png`` and ``amortization.png`` to it.
 
-The experiment itself is tagged as model training (:data:`EXPERIMENT_KIND_TAG`), described, and given a
-saved view, "PLAD results by domain" (:func:`results_view_state`), listed in the runs page's Views menu and
-opened directly by :func:`results_view_path`.
+Every experiment is tagged as model training (:data:`EXPERIMENT_KIND_TAG`) and described (the metric, once a
+result names it: :func:`describe_domain`); a domain's is given a saved view, "PLAD results"
+(:func:`results_view_state`: the row numbers as columns, every row in the charts), listed in the runs page's
+Views menu and opened directly by :func:`results_view_path`.
 
 Row runs are looked up by their tags and created on first use; on a SQLite store a file lock beside the
 database keeps two stage processes from creating the same row twice.
@@ -55,20 +62,32 @@ STOPPED = "plad.stopped"
 #: in the address selects it, see :func:`results_view_path`); later versions set the switch from this tag.
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 TRAINING_KIND = "custom_model_development"
-#: a saved view of the experiment's runs (MLflow 3.17's "Views" menu; ``mlflow.sharedViewState.<key>`` holds
-#: ``{"name", "createdAt", "updatedAt", "state"}``, ``state`` a JSON string of the runs page's search and
-#: column state) that shows the results table: the result rows only, grouped by domain, with their numbers
+#: a saved view of a domain experiment's runs (MLflow 3.17's "Views" menu; ``mlflow.sharedViewState.<key>``
+#: holds ``{"name", "createdAt", "updatedAt", "state"}``, ``state`` a JSON string of the runs page's search and
+#: column state) that shows the domain's results table with every number as a column
 VIEW_KEY = "plad-results"
 VIEW_TAG = f"mlflow.sharedViewState.{VIEW_KEY}"
-VIEW_NAME = "PLAD results by domain"
+VIEW_NAME = "PLAD results"
 #: the experiment's description, shown above its runs (MLflow's ``mlflow.note.content``)
 NOTE_TAG = "mlflow.note.content"
-EXPERIMENT_NOTE = (
-    f"PLAD: one top-level run per (domain, method), named with its test metric. Views > \"{VIEW_NAME}\" "
-    f"shows them with `{TEST}`, `{VAL}`, `{SECONDS_PER_SHAPE}`, `{TRAIN_SECONDS}` and the stop reason "
-    f"(tag `{STOPPED}`), the same names in every domain (the tags `plad.metric`, `plad.better`: which metric, "
-    "which way is better). Expand a row for its stage runs (pretrain, finetune and its rounds, evaluate); the "
-    "`pipeline` row holds the report (table.md, convergence.png, amortization.png).")
+PIPELINE_NOTE = (
+    "PLAD's pipeline runs: one `pipeline · <profile>` run per profile, with the report stage under it and its "
+    "outputs (table.md, convergence.png, amortization.png, amortization.md, report.json), and the models it "
+    "registers. The results of each domain, one run per method, are in the experiment `plad-<domain>`.")
+
+
+def domain_note(domain: str, metric: str | None = None, higher_is_better: bool | None = None) -> str:
+    """A domain experiment's description; its first line (all the runs page shows before it is expanded)
+    says what the numbers in the run names are."""
+    if metric is None:
+        head = f"PLAD, {domain}: runs named `<method> · <test metric>`."
+    else:
+        better = "" if higher_is_better is None else f", {'higher' if higher_is_better else 'lower'} is better"
+        head = f"PLAD, {domain}: runs named `<method> · <test {metric}>`{better}."
+    return (f"{head} One run per method (a row of results/table.md) with `{TEST}`, `{VAL}`, `{SECONDS_PER_SHAPE}`,"
+            f" `{TRAIN_SECONDS}` and the stop reason (tag `{STOPPED}`): Columns, or Views > \"{VIEW_NAME}\"; the "
+            "chart view compares them. Expand a run for its stage runs (pretrain, finetune and its rounds, "
+            "evaluate). The report is in the experiment `plad`.")
 
 
 @dataclass(frozen=True)
@@ -83,11 +102,11 @@ class Row:
     def kind(self) -> str:
         return PIPELINE if self.domain is None else RESULT
 
-    def name(self, metric: str | None = None, test: float | None = None) -> str:
+    def name(self, test: float | None = None) -> str:
         if self.domain is None:
             return f"pipeline · {self.profile}"
-        base = f"{self.domain} · {self.method}"
-        return base if test is None else f"{base} · {metric or 'test'} {test:.4g}"
+        # the domain is the experiment, the metric its description: the name shows what differs
+        return str(self.method) if test is None else f"{self.method} · {test:.4g}"
 
     @property
     def tags(self) -> dict[str, str]:
@@ -118,41 +137,58 @@ def _quoted(column_type: str, key: str) -> str:
 
 
 def results_view_state() -> dict[str, Any]:
-    """The runs page state of the results view: result rows only, grouped by ``plad.domain``, sorted by name,
-    the row numbers as columns (MLflow hides metric columns until chosen), the name column wide enough."""
+    """The runs page state of the results view: result rows only, sorted by name, the row numbers as columns
+    (MLflow hides metric columns until chosen), the name column wide enough for the longest method key; no
+    grouping (a group's row would average methods and baselines)."""
     name = _quoted("attributes", "Run Name")
-    columns = [_quoted("metrics", m) for m in (TEST, VAL, SECONDS_PER_SHAPE, TRAIN_SECONDS)] + \
-        [_quoted("tags", t) for t in (STOPPED, "plad.metric", "plad.better")]
+    columns = [*(_quoted("metrics", m) for m in (TEST, VAL, SECONDS_PER_SHAPE, TRAIN_SECONDS)),
+               _quoted("tags", STOPPED)]
     return {"searchFilter": f"tags.`{ROW_TAG}` = '{RESULT}'", "orderByKey": "tags.`mlflow.runName`",
             "orderByAsc": True, "startTime": "ALL", "lifecycleFilter": "Active", "datasetsFilter": [],
             "modelVersionFilter": "All Runs", "selectedColumns": columns,
             # widths apply to the columns named in the order
-            "columnOrder": [name, *columns], "columnWidths": {name: 330},
-            "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": "plad.domain"}]},
-            # the chart view: one bar per row (not per domain group), every row (MLflow's default: the first 10)
+            "columnOrder": [name, *columns], "columnWidths": {name: 300},
+            # the chart view: one bar per row, every row (MLflow's default: the first 10)
             "useGroupedValuesInCharts": False, "runsHiddenMode": "SHOW_ALL"}
 
 
+def runs_path(experiment_id: str) -> str:
+    """The MLflow UI's address (after its root) of an experiment's runs page; ``workflowType`` because MLflow
+    3.17 opens an experiment by its GenAI / model-training switch (default GenAI), not by the experiment's kind."""
+    return f"#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+
+
 def results_view_path(experiment_id: str) -> str:
-    """The MLflow UI's address (after its root) of the results view; ``workflowType`` because MLflow 3.17
-    opens an experiment by its GenAI / model-training switch (default GenAI), not by the experiment's kind."""
-    return f"#/experiments/{experiment_id}/runs?workflowType=machine_learning&viewStateShareKey={VIEW_KEY}"
+    """The MLflow UI's address (after its root) of a domain experiment's results view."""
+    return f"{runs_path(experiment_id)}&viewStateShareKey={VIEW_KEY}"
 
 
-def mark_training_experiment(mlflow_client: Any, experiment_id: str) -> None:
-    """Tag the experiment as model training (opens on its runs), describe its rows and save the results view,
-    each unless already there (a kind, description or view changed in the UI stays)."""
+def mark_training_experiment(mlflow_client: Any, experiment_id: str, *, domain: str | None = None) -> None:
+    """Tag the experiment as model training (opens on its runs where MLflow follows the kind), describe it and,
+    for a domain's (``domain``), save the results view, each unless already there (a kind, description or view
+    changed in the UI stays)."""
     import json
 
     tags = mlflow_client.get_experiment(experiment_id).tags or {}
     if EXPERIMENT_KIND_TAG not in tags:
         mlflow_client.set_experiment_tag(experiment_id, EXPERIMENT_KIND_TAG, TRAINING_KIND)
     if NOTE_TAG not in tags:
-        mlflow_client.set_experiment_tag(experiment_id, NOTE_TAG, EXPERIMENT_NOTE)
-    if VIEW_TAG not in tags:
+        note = PIPELINE_NOTE if domain is None else domain_note(domain)
+        mlflow_client.set_experiment_tag(experiment_id, NOTE_TAG, note)
+    if domain is not None and VIEW_TAG not in tags:
         now = int(time.time() * 1000)
         view = {"name": VIEW_NAME, "createdAt": now, "updatedAt": now, "state": json.dumps(results_view_state())}
         mlflow_client.set_experiment_tag(experiment_id, VIEW_TAG, json.dumps(view))
+
+
+def describe_domain(mlflow_client: Any, experiment_id: str, domain: str, metric: str,
+                    higher_is_better: bool | None) -> None:
+    """Name the test metric in a domain experiment's description once a result says which it is (the stages
+    know it, :mod:`plad.tracking` does not); a description written or changed by someone else stays."""
+    tags = mlflow_client.get_experiment(experiment_id).tags or {}
+    note = domain_note(domain, metric, higher_is_better)
+    if tags.get(NOTE_TAG) in (None, domain_note(domain)):
+        mlflow_client.set_experiment_tag(experiment_id, NOTE_TAG, note)
 
 
 # -- finding or creating a row run ---------------------------------------------------------------------
@@ -223,9 +259,7 @@ def log_result(mlflow_client: Any, run_id: str, row: Row, *, metric: str | None 
     if metrics or tags:
         mlflow_client.log_batch(run_id, metrics=metrics, tags=[RunTag(k, v) for k, v in tags.items()])
     if test is not None:
-        if metric is None:
-            metric = (mlflow_client.get_run(run_id).data.tags or {}).get("plad.metric")
-        mlflow_client.update_run(run_id, name=row.name(metric, float(test)))
+        mlflow_client.update_run(run_id, name=row.name(float(test)))
 
 
 def _round(v: float | None, digits: int) -> float | None:
@@ -244,7 +278,7 @@ def set_row_status(mlflow_client: Any, run_id: str, status: str) -> None:
         mlflow_client.set_terminated(run_id, status)
 
 
-__all__ = ["EXPERIMENT_KIND_TAG", "NOTE_TAG", "PIPELINE", "RESULT", "ROW_TAG", "SECONDS_PER_SHAPE", "STOPPED",
-           "TEST", "TRAINING_KIND", "TRAIN_SECONDS", "VAL", "VIEW_KEY", "VIEW_NAME", "VIEW_TAG", "Row", "find_row",
-           "log_result", "mark_training_experiment", "pipeline_row", "result_row", "results_view_path",
-           "results_view_state", "row_run", "set_row_status"]
+__all__ = ["EXPERIMENT_KIND_TAG", "NOTE_TAG", "PIPELINE", "PIPELINE_NOTE", "RESULT", "ROW_TAG", "SECONDS_PER_SHAPE",
+           "STOPPED", "TEST", "TRAINING_KIND", "TRAIN_SECONDS", "VAL", "VIEW_KEY", "VIEW_NAME", "VIEW_TAG", "Row",
+           "describe_domain", "domain_note", "find_row", "log_result", "mark_training_experiment", "pipeline_row",
+           "result_row", "results_view_path", "results_view_state", "row_run", "runs_path", "set_row_status"]

@@ -27,6 +27,7 @@ from plad.tracking.rows import (
     PIPELINE,
     RESULT,
     Row,
+    describe_domain,
     log_result,
     mark_training_experiment,
     row_run,
@@ -34,11 +35,12 @@ from plad.tracking.rows import (
 )
 from plad.tracking.serving import log_pyfunc
 from plad.tracking.store import (
-    DEFAULT_EXPERIMENT,
     MAX_KEY_LENGTH,
     MAX_PARAM_VAL_LENGTH,
     MAX_TAG_VAL_LENGTH,
+    PIPELINE_EXPERIMENT,
     client,
+    domain_experiment,
     ensure_experiment,
     mlflow_module,
     open_store,
@@ -192,6 +194,10 @@ class StageRun:
     Exiting ends the run FINISHED, or FAILED (KILLED for KeyboardInterrupt) when
     an exception escapes; exceptions always propagate.
 
+    The run goes to its domain's experiment, ``plad-<domain>``
+    (:func:`plad.tracking.store.domain_experiment`), a pipeline run (``row="pipeline"``: the report, whose
+    ``domain`` lists several) to ``plad``, unless ``experiment`` names another.
+
     The run is nested under its row run (:mod:`plad.tracking.rows`): ``row="result"``
     (the default) the row of ``(profile, domain, method)`` (method ``sp`` when none
     is given), ``row="pipeline"`` the profile's pipeline run, ``row=None`` none (a
@@ -201,10 +207,14 @@ class StageRun:
 
     def __init__(self, stage: str, domain: str, params: Mapping[str, Any] | Any,
                  run_dir: str | os.PathLike, *, method: str | None = None,
-                 tags: Mapping[str, Any] | None = None, experiment: str = DEFAULT_EXPERIMENT,
+                 tags: Mapping[str, Any] | None = None, experiment: str | None = None,
                  params_path: str | os.PathLike = "params.yaml", row: str | None = RESULT):
         if row not in (RESULT, PIPELINE, None):
             raise ValueError(f"StageRun row {row!r}: expected {RESULT!r}, {PIPELINE!r} or None")
+        # chosen here, so that a bad domain is an error before anything is written
+        self.domain_experiments = experiment is None   # rows of another domain go to that domain's experiment
+        if experiment is None:
+            experiment = PIPELINE_EXPERIMENT if row == PIPELINE else domain_experiment(domain)
         self.stage = stage
         self.domain = domain
         self.method = method
@@ -284,7 +294,8 @@ class StageRun:
         mlflow = mlflow_module()
         mlflow_client = mlflow.MlflowClient()
         experiment_id = self._exp_id = ensure_experiment(mlflow_client, uri, self.experiment)
-        mark_training_experiment(mlflow_client, experiment_id)
+        mark_training_experiment(mlflow_client, experiment_id,
+                                 domain=None if self.row_kind == PIPELINE else self.domain)
         tags = self._tags = self.tags
         previous = self._resumable(mlflow_client, uri, experiment_id)
         nested = mlflow.active_run() is not None   # e.g. a flow's own run around the stage
@@ -386,14 +397,33 @@ class StageRun:
         """
         if self.row is None or self._exp_id is None:
             raise RuntimeError("StageRun.log_result: this run has no row (row=None, or inside another run)")
+        mlflow_client = client()
         if domain is None and method is None:
-            row, run_id = self.row, self.row_id
+            row, run_id, experiment_id = self.row, self.row_id, self._exp_id
         else:
             row = Row(self.row.profile, domain or self.domain, method or self.method or SP)
-            run_id = row_run(client(), self._uri, self._exp_id, row)
+            experiment_id = self._experiment_of(mlflow_client, row.domain)
+            run_id = row_run(mlflow_client, self._uri, experiment_id, row)
         if row.kind != RESULT:
             raise RuntimeError(f"StageRun.log_result: {row.name()} is not a result row")
-        log_result(client(), run_id, row, **values)
+        log_result(mlflow_client, run_id, row, **values)
+        if values.get("metric") is not None:
+            describe_domain(mlflow_client, experiment_id, str(row.domain), values["metric"],
+                            values.get("higher_is_better"))
+
+    def experiment_of(self, domain: str) -> str:
+        """The id of the experiment that holds the result rows of ``domain`` (see :meth:`log_result`)."""
+        self._current()
+        return self._experiment_of(client(), domain)
+
+    def _experiment_of(self, mlflow_client: Any, domain: str | None) -> str:
+        """The id of the experiment that holds the rows of ``domain``: its own (``plad-<domain>``, created and
+        marked when new), or this run's when the run was given an experiment of its own."""
+        if not self.domain_experiments or domain is None or (self.row_kind != PIPELINE and domain == self.domain):
+            return self.experiment_id
+        experiment_id = ensure_experiment(mlflow_client, self._uri, domain_experiment(domain))
+        mark_training_experiment(mlflow_client, experiment_id, domain=domain)
+        return experiment_id
 
     def log_row_artifact(self, path: str | os.PathLike, artifact_path: str | None = None) -> None:
         """A file as an artifact of this run's row (e.g. the report's table on the pipeline run)."""
@@ -470,10 +500,11 @@ class RunRecord:
     tags: dict[str, str]
 
 
-def latest_finished_run(experiment_id: str, tags: Mapping[str, str]) -> RunRecord | None:
-    """The FINISHED run of the experiment with all these tag values that ended last, or ``None``."""
+def latest_finished_run(experiment_ids: str | list[str], tags: Mapping[str, str]) -> RunRecord | None:
+    """The FINISHED run of the experiment(s) with all these tag values that ended last, or ``None``."""
+    ids = [experiment_ids] if isinstance(experiment_ids, str) else list(experiment_ids)
     where = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())
-    runs = client().search_runs([experiment_id], f"{where} and attributes.status = 'FINISHED'",
+    runs = client().search_runs(ids, f"{where} and attributes.status = 'FINISHED'",
                                 order_by=["attributes.end_time DESC"], max_results=1)
     if not runs:
         return None

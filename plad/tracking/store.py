@@ -51,7 +51,11 @@ from typing import Any
 from plad.errors import RunFailure, one_line
 from plad.fsutil import file_lock
 
-DEFAULT_EXPERIMENT = "plad"
+#: the experiment of the pipeline runs (one per profile: the report, its tables and pictures, the models it
+#: registers); older stores also hold every stage run here, from before the experiments per domain
+PIPELINE_EXPERIMENT = "plad"
+#: the experiment of a domain's runs (:func:`domain_experiment`): ``plad-<domain>``
+DOMAIN_EXPERIMENT_PREFIX = "plad-"
 # MLflow's limits (mlflow.utils.validation), repeated here to avoid importing mlflow.
 MAX_PARAM_VAL_LENGTH = 6000
 MAX_KEY_LENGTH = 250
@@ -136,12 +140,29 @@ def ensure_experiment(mlflow_client: Any, uri: str, name: str) -> str:
     return exp.experiment_id
 
 
-def find_experiment(name: str = DEFAULT_EXPERIMENT) -> str:
+def domain_experiment(domain: str) -> str:
+    """The experiment of one domain's runs, ``plad-<domain>``: one experiment per domain, so that a metric
+    column and a chart of an experiment compare one metric (Chamfer distance in 2D, IoU in 3D), never two."""
+    if not isinstance(domain, str) or not re.fullmatch(r"[A-Za-z0-9][\w.-]*", domain):
+        raise ValueError(f"MLflow experiment of domain {domain!r}: expected one domain name (letters, digits, "
+                         "'_', '-', '.'), e.g. csg2d")
+    return DOMAIN_EXPERIMENT_PREFIX + domain
+
+
+def find_experiment(name: str) -> str:
     """The id of an existing experiment; ``LookupError`` naming the store when there is none."""
-    exp = client().get_experiment_by_name(name)
-    if exp is None:
-        raise LookupError(f"no MLflow experiment {name!r} at {tracking_uri()}")
-    return exp.experiment_id
+    return find_experiments([name])[0]
+
+
+def find_experiments(names: list[str]) -> list[str]:
+    """The ids of those of the experiments ``names`` that exist, in that order; ``LookupError`` naming the
+    first and the store when none does."""
+    mlflow_client = client()
+    found = [exp.experiment_id for exp in map(mlflow_client.get_experiment_by_name, names) if exp is not None]
+    if not found:
+        others = "".join(f" (or {n!r})" for n in names[1:])
+        raise LookupError(f"no MLflow experiment {names[0]!r}{others} at {tracking_uri()}")
+    return found
 
 
 # -- opening a store ------------------------------------------------------------------------------

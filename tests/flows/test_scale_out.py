@@ -209,7 +209,7 @@ def test_deployment_on_a_work_pool_runs_on_a_process_worker(prefect_server, smok
         stop(worker)
     assert left_behind(before) == []
     runs = mlflow_runs(db)   # the stage run and the row run of (profile, csg2d, st) it nests under
-    assert ("finetune", "FINISHED") in runs and ("csg2d · st", "FINISHED") in runs
+    assert ("finetune", "FINISHED") in runs and ("st", "FINISHED") in runs
     summary = Layout(smoke).flow_run("smoke").finetune_summary("csg2d", "st")
     assert summary.exists(), tail(log)
     assert json.loads(summary.read_text())["train_shapes"] == FEWER_SHAPES   # the profile was applied

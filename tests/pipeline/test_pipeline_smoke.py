@@ -82,7 +82,8 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     import mlflow
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
-    runs = mlflow.search_runs(experiment_names=["plad"])
+    # the pipeline's runs in plad, each domain's in plad-<domain>
+    runs = mlflow.search_runs(experiment_names=["plad", *(f"plad-{d}" for d in DOMAINS)])
     stages = set(runs["tags.plad.stage"])
     assert {"pretrain", "evaluate", "finetune", "report"} <= stages
     assert (runs["status"] == "FINISHED").all()
@@ -115,18 +116,23 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
 
 
 def test_smoke_repro_top_level_is_the_results_table(smoke_run):
-    """MLflow's top level: one row run per (domain, result key) named with its test metric, and the pipeline's;
-    every stage run nested under its row (plad.tracking.rows)."""
+    """MLflow's top level: in each domain's experiment (plad-<domain>) one row run per result key named with its
+    test value, in plad the pipeline's; every stage run nested under its row (plad.tracking.rows)."""
     work, env, *_ = smoke_run
     import mlflow
 
     mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
     client = mlflow.MlflowClient()
-    experiment = client.get_experiment_by_name("plad")
-    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
-    runs = mlflow.search_runs(experiment_names=["plad"])
+    names = ["plad", *(f"plad-{d}" for d in DOMAINS)]
+    experiments = {name: client.get_experiment_by_name(name) for name in names}
+    assert all(e.tags["mlflow.experimentKind"] == "custom_model_development" for e in experiments.values())
+    runs = mlflow.search_runs(experiment_names=names)
     top = runs[runs["tags.mlflow.parentRunId"].isna()]
     assert set(top["tags.plad.row"]) == {"result", "pipeline"}          # no stage run at the top level
+    # every run of a domain in its experiment, the pipeline's (the report) in plad
+    stage_domain = runs["tags.plad.domain"].where(runs["tags.plad.stage"] != "report")
+    expected = stage_domain.map(lambda d: experiments["plad" if not isinstance(d, str) else f"plad-{d}"].experiment_id)
+    assert (runs["experiment_id"] == expected).all()
     rows = top[top["tags.plad.row"] == "result"]
     keys = {"sp", "floor", "search", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
             *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined"}
@@ -138,7 +144,7 @@ def test_smoke_repro_top_level_is_the_results_table(smoke_run):
             test = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())["test"]["mean"]
             metric = "chamfer" if domain == "csg2d" else "iou"
             assert row["metrics.test_metric"] == pytest.approx(test, abs=1e-6)
-            assert row["tags.mlflow.runName"] == f"{domain} · {key} · {metric} {test:.4g}"
+            assert row["tags.mlflow.runName"] == f"{key} · {test:.4g}" and row["tags.plad.metric"] == metric
         for key in METHODS:   # fine-tuned: validation value, training time and stop reason under the same names
             row = mine[mine["tags.plad.method"] == key].iloc[0]
             assert row["metrics.val_metric"] > 0 and row["metrics.train_seconds"] > 0

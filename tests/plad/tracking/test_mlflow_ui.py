@@ -1,17 +1,20 @@
 """Comparing methods in MLflow's UI as a user does, in a real browser (headless Chromium, Debian's package).
 
 A small store is filled by real stage runs (:mod:`tests.plad.tracking.ui_store`: two domains, rows SP, ST
-and the floor), ``mlflow ui`` serves it on a free local port, and Chromium loads the experiment page:
+and the floor), ``mlflow ui`` serves it on a free local port, and Chromium loads its landing page:
 
-* with nothing chosen (MLflow's default columns): the experiment opens on its runs, whose top level is
-  one row per (domain, method) plus the pipeline's, each named with its test metric;
-* the saved view "PLAD results by domain": the same rows grouped by domain with their test and
-  validation metric, seconds per shape and stop reason as columns, and one bar per row in the chart view.
+* each domain has its experiment, ``plad-<domain>``, listed on the landing page; from there, in a browser
+  that never chose MLflow's GenAI / Model training switch, two clicks ("Model training", the experiment)
+  open the domain's runs with MLflow's default columns, one row per method named with its test value; in a
+  browser that chose it once, one click (the experiment);
+* the chart view of a domain's experiment charts ``test_metric`` with one bar per method, all of one metric;
+* the saved view "PLAD results": the same rows with their test and validation metric, seconds per shape and
+  stop reason as columns.
 
 Expected values come from the evaluation files (``results/eval/<method>/<domain>/metrics.json``), not from
 MLflow. Screenshots (PNG) are written to the test's folder, and to ``$PLAD_UI_SCREENSHOTS`` when set
-(how ``docs/mlflow-results-view.png`` was made). Skipped where Chromium is not installed (fails under
-``CI=true``, where ``.ci/run`` installs it).
+(how ``docs/mlflow-runs.png`` was made). Skipped where Chromium is not installed (fails under ``CI=true``,
+where ``.ci/run`` installs it).
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ import pytest
 from tests import procs
 from tests.browser import Browser, chromium
 from tests.conftest import under_ci
-from tests.plad.tracking.ui_store import DOMAINS, METHODS, PROFILE, build
+from tests.plad.tracking.ui_store import DOMAINS, METHODS, build
 
 pytestmark = pytest.mark.integration
 
@@ -64,7 +67,7 @@ def browser_needed():
 
 @pytest.fixture(scope="module")
 def store(browser_needed, tmp_path_factory):
-    """(tracking URI, project root, experiment id): the stages run into a fresh store."""
+    """(tracking URI, project root, {domain: experiment id}): the stages run into a fresh store."""
     folder = tmp_path_factory.mktemp("ui-store")
     uri = f"sqlite:///{folder / 'mlflow.db'}"
     mp = pytest.MonkeyPatch()
@@ -74,10 +77,11 @@ def store(browser_needed, tmp_path_factory):
         build(folder / "project")
         import mlflow
 
-        experiment_id = mlflow.MlflowClient(uri).get_experiment_by_name("plad").experiment_id
+        client = mlflow.MlflowClient(uri)
+        experiments = {d: client.get_experiment_by_name(f"plad-{d}").experiment_id for d in DOMAINS}
     finally:
         mp.undo()
-    return uri, folder / "project", experiment_id
+    return uri, folder / "project", experiments
 
 
 @pytest.fixture(scope="module")
@@ -106,18 +110,17 @@ def browser(browser_needed, tmp_path):
         b.close()
 
 
-def expected_rows(root: Path) -> dict[tuple[str, str], dict]:
-    """{(domain, method): {"name", "test", "metric"}} from the evaluation files of the store's project."""
+def expected_rows(root: Path, domain: str) -> dict[str, dict]:
+    """{method: {"name", "test"}} of a domain, and its metric, from the evaluation files of the store's project."""
     out = {}
-    for domain in DOMAINS:
-        for method in ["sp", *METHODS, "floor"]:
-            m = json.loads((root / "results" / "eval" / method / domain / "metrics.json").read_text())
-            metric = m["metric"] if method != "floor" else json.loads(
-                (root / "results" / "eval" / "sp" / domain / "metrics.json").read_text())["metric"]
-            test = m["test"]["mean"]
-            out[(domain, method)] = {"name": f"{domain} · {method} · {metric} {test:.4g}", "test": test,
-                                     "metric": metric}
+    for method in ["sp", *METHODS, "floor"]:
+        test = json.loads((root / "results" / "eval" / method / domain / "metrics.json").read_text())["test"]["mean"]
+        out[method] = {"name": f"{method} · {test:.4g}", "test": test}
     return out
+
+
+def metric_of(root: Path, domain: str) -> str:
+    return json.loads((root / "results" / "eval" / "sp" / domain / "metrics.json").read_text())["metric"]
 
 
 def keep(shot: Path, name: str) -> None:
@@ -129,63 +132,106 @@ def keep(shot: Path, name: str) -> None:
         shutil.copy(shot, Path(folder) / name)
 
 
-def test_the_server_reports_the_experiment_as_model_training(store, ui):
-    _, _, experiment_id = store
-    query = urllib.parse.urlencode({"experiment_id": experiment_id})
-    with urllib.request.urlopen(f"{ui}/ajax-api/2.0/mlflow/experiments/get?{query}", timeout=30) as r:
-        tags = {t["key"]: t["value"] for t in json.load(r)["experiment"]["tags"]}
-    assert tags["mlflow.experimentKind"] == "custom_model_development"
-    view = json.loads(tags["mlflow.sharedViewState.plad-results"])
-    assert view["name"] == "PLAD results by domain" and json.loads(view["state"])["groupBy"]["groupByKeys"] == [
-        {"mode": "tag", "groupByData": "plad.domain"}]
+def click(browser: Browser, selector: str, text: str) -> None:
+    """A user's click on the element ``selector`` whose text is ``text`` (waits until there is one)."""
+    found = f"Array.from(document.querySelectorAll({json.dumps(selector)})).find(e => e.innerText.trim() === " \
+            f"{json.dumps(text)})"
+    browser.wait_for(f"Boolean({found})", PAGE_TIMEOUT)
+    browser.evaluate(f"{found}.click()")
 
 
-def test_the_runs_top_level_is_one_row_per_domain_and_method_named_with_its_test_metric(store, ui, browser,
-                                                                                        tmp_path):
-    _, root, experiment_id = store
-    rows = expected_rows(root)
-    # the experiment's address as the experiment list links it, with MLflow 3.17's model-training switch
-    browser.open(f"{ui}/#/experiments/{experiment_id}?workflowType=machine_learning")
-    names = [r["name"] for r in rows.values()]
-    browser.wait_for("location.hash.includes('/runs') && " + " && ".join(
-        f"document.body.innerText.includes({json.dumps(n)})" for n in names), PAGE_TIMEOUT)
-    keep(browser.screenshot(tmp_path / "runs.png"), "mlflow-runs.png")
-    table = json.loads(browser.evaluate(ROWS_JS))
-    top = [r["cells"][NAME] for r in table if r["level"] == "ag-row-level-0"]
-    # every row of the comparison and the pipeline's, nothing else: the stage runs are folded under them
-    assert sorted(top) == sorted([*names, f"pipeline · {PROFILE}"])
-    assert len(top) == len(table)
+# the runs page's name cells: each run's name, and whether it shows whole (not cut off with an ellipsis)
+NAMES_JS = """JSON.stringify(Array.from(document.querySelectorAll(
+  '.ag-row[row-id] [col-id="attributes.`Run Name`"] a[href*="/runs/"]')).map(a => {
+    const cell = a.closest('.ag-cell');
+    const room = cell.getBoundingClientRect().right - parseFloat(getComputedStyle(cell).paddingRight);
+    return [a.innerText.trim(), a.scrollWidth <= a.clientWidth && a.getBoundingClientRect().right <= room]; }))"""
 
 
-def test_the_results_view_compares_methods_per_domain(store, ui, browser, tmp_path):
-    _, root, experiment_id = store
-    rows = expected_rows(root)
+def test_the_server_reports_each_domain_experiment_as_model_training(store, ui):
+    _, root, experiments = store
+    for domain, experiment_id in experiments.items():
+        query = urllib.parse.urlencode({"experiment_id": experiment_id})
+        with urllib.request.urlopen(f"{ui}/ajax-api/2.0/mlflow/experiments/get?{query}", timeout=30) as r:
+            tags = {t["key"]: t["value"] for t in json.load(r)["experiment"]["tags"]}
+        assert tags["mlflow.experimentKind"] == "custom_model_development"
+        # the description's first line says what the numbers in the run names are
+        assert tags["mlflow.note.content"].startswith(f"PLAD, {domain}: runs named `<method> · <test "
+                                                      f"{metric_of(root, domain)}>`")
+        view = json.loads(tags["mlflow.sharedViewState.plad-results"])
+        assert view["name"] == "PLAD results" and "groupBy" not in json.loads(view["state"])
+
+
+@pytest.mark.parametrize("remembered", [False, True], ids=["new-browser", "model-training-remembered"])
+def test_from_the_landing_page_two_clicks_show_each_domain_s_methods_with_their_test_metric(
+        store, ui, browser, tmp_path, remembered):
+    _, root, experiments = store
+    if remembered:   # the user chose "Model training" once, earlier (MLflow keeps it in the browser's storage)
+        browser.open(f"{ui}/")
+        click(browser, "span", "Model training")
+    for domain, experiment_id in experiments.items():
+        rows = expected_rows(root, domain)
+        browser.open(f"{ui}/health")    # a page of the same origin, so that "/" is loaded anew
+        browser.wait_for("location.pathname === '/health' && document.readyState === 'complete'", PAGE_TIMEOUT)
+        if not remembered:   # a browser that never chose MLflow's switch: GenAI until "Model training" is clicked
+            browser.evaluate("localStorage.clear()")
+        browser.open(f"{ui}/")
+        # the landing page lists the experiments (its "Recent Experiments", linked as the experiment list does)
+        clicks = [("a", f"plad-{domain}")] if remembered else [("span", "Model training"), ("a", f"plad-{domain}")]
+        for selector, text in clicks:
+            click(browser, selector, text)
+        # the domain's runs page with MLflow's default columns: a row per method, its name with its test value
+        browser.wait_for(f"location.hash.startsWith('#/experiments/{experiment_id}/runs') && " + " && ".join(
+            f"document.body.innerText.includes({json.dumps(r['name'])})" for r in rows.values()), PAGE_TIMEOUT)
+        if domain == "csg2d" and not remembered:
+            keep(browser.screenshot(tmp_path / "runs.png"), "mlflow-runs.png")
+        table = json.loads(browser.evaluate(ROWS_JS))
+        assert sorted(r["cells"][NAME] for r in table) == sorted(r["name"] for r in rows.values())
+        assert all(r["level"] == "ag-row-level-0" for r in table)   # the stage runs are folded under them
+        names = dict(json.loads(browser.evaluate(NAMES_JS)))
+        assert names == {r["name"]: True for r in rows.values()}     # each name whole, none cut off
+        for method, row in rows.items():   # the number shown is the evaluation's test metric
+            assert float(row["name"].split(" · ")[1]) == pytest.approx(row["test"], rel=5e-4), method
+        # the description above the runs names the metric
+        assert f"<test {metric_of(root, domain)}>" in browser.evaluate("document.body.innerText")
+
+
+def test_each_domain_s_chart_compares_its_test_metric_across_methods(store, ui, browser, tmp_path):
+    _, root, experiments = store
+    from plad.tracking.rows import runs_path
+
+    for domain, experiment_id in experiments.items():
+        rows = expected_rows(root, domain)
+        browser.open(f"{ui}/{runs_path(experiment_id)}&compareRunsMode=CHART")
+        # the test_metric chart's bars: one per method, the values of this domain's evaluations (one metric)
+        bars = json.loads(browser.wait_for("""(() => {
+            const title = Array.from(document.querySelectorAll('h4')).find(e => e.textContent.trim() === 'test_metric');
+            const plot = title && title.closest('.react-resizable').querySelector('.js-plotly-plot');
+            return plot && plot.data && plot.data.length ? JSON.stringify(plot.data.flatMap(t => t.x)) : null; })()""",
+                                           PAGE_TIMEOUT))
+        if domain == "csg2d":
+            keep(browser.screenshot(tmp_path / "chart.png"), "mlflow-chart.png")
+        assert sorted(bars) == pytest.approx(sorted(r["test"] for r in rows.values()), abs=1e-6)
+
+
+def test_the_results_view_shows_the_numbers_as_columns(store, ui, browser, tmp_path):
+    _, root, experiments = store
     from plad.tracking.rows import results_view_path
 
-    browser.open(f"{ui}/{results_view_path(experiment_id)}")
-    browser.wait_for("document.querySelectorAll('[col-id=\"metrics.`test_metric`\"]').length > "
-                     f"{len(rows)} && " + " && ".join(f"document.body.innerText.includes({json.dumps(r['name'])})"
-                                                     for r in rows.values()), PAGE_TIMEOUT)
-    keep(browser.screenshot(tmp_path / "results-view.png"), "mlflow-results-view.png")
-    table = json.loads(browser.evaluate(ROWS_JS))
-    # a group per domain, each followed by its rows (sorted by name): the result rows only
-    assert [r["cells"][NAME] for r in table] == [x for d in sorted(DOMAINS) for x in [
-        f"Group: {d}", *sorted(r["name"] for (domain, _), r in rows.items() if domain == d)]]
-    members = [r["cells"] for r in table if r["run"]]
-    shown = {c[NAME]: c for c in members}
-    for (_, method), row in rows.items():
-        cells = shown[row["name"]]
-        assert float(cells["metrics.`test_metric`"]) == pytest.approx(row["test"], abs=1e-6)
-        assert cells["tags.`plad.metric`"] == row["metric"]
-        if method != "floor":   # the floor is a baseline without a model: no validation value or timing
-            assert float(cells["metrics.`val_metric`"]) > 0 and float(cells["metrics.`seconds_per_shape`"]) > 0
-        if method == "st":
-            assert cells["tags.`plad.stopped`"] == "max_rounds"
-    # the chart view of the same view: a test_metric chart with one bar per row (not one per domain group)
-    browser.open(f"{ui}/{results_view_path(experiment_id)}&compareRunsMode=CHART")
-    bars = browser.wait_for("""(() => {
-        const title = Array.from(document.querySelectorAll('h4')).find(e => e.textContent.trim() === 'test_metric');
-        const card = title && title.closest('.react-resizable');
-        return card ? card.querySelectorAll('.barlayer .point').length : 0; })()""", PAGE_TIMEOUT)
-    keep(browser.screenshot(tmp_path / "results-chart.png"), "mlflow-results-chart.png")
-    assert bars == len(rows)
+    for domain, experiment_id in experiments.items():
+        rows = expected_rows(root, domain)
+        browser.open(f"{ui}/{results_view_path(experiment_id)}")
+        browser.wait_for("document.querySelectorAll('[col-id=\"metrics.`test_metric`\"]').length > "
+                         f"{len(rows)} && " + " && ".join(f"document.body.innerText.includes({json.dumps(r['name'])})"
+                                                         for r in rows.values()), PAGE_TIMEOUT)
+        table = json.loads(browser.evaluate(ROWS_JS))
+        # the result rows only, sorted by name, no group (whose row would average methods and baselines)
+        assert [r["cells"][NAME] for r in table] == sorted(r["name"] for r in rows.values())
+        shown = {r["cells"][NAME]: r["cells"] for r in table}
+        for method, row in rows.items():
+            cells = shown[row["name"]]
+            assert float(cells["metrics.`test_metric`"]) == pytest.approx(row["test"], abs=1e-6)
+            if method != "floor":   # the floor is a baseline without a model: no validation value or timing
+                assert float(cells["metrics.`val_metric`"]) > 0 and float(cells["metrics.`seconds_per_shape`"]) > 0
+            if method == "st":
+                assert cells["tags.`plad.stopped`"] == "max_rounds"

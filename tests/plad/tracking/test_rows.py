@@ -1,4 +1,5 @@
-"""plad.tracking.rows: the experiment's top level is one run per (domain, method), the stage runs nested under it.
+"""plad.tracking.rows: each domain's experiment (plad-<domain>) has one top-level run per method, the stage runs
+nested under it; the pipeline runs are in the experiment plad.
 
 One SQLite store for the module; each test uses its own profile (rows are per profile), so tests do not
 see each other's rows.
@@ -48,9 +49,9 @@ def params(tmp_path, profile: str):
     return path
 
 
-def top_level(client, profile: str) -> dict[str, object]:
-    """{run name: run} of the top-level runs of a profile."""
-    exp = client.get_experiment_by_name("plad").experiment_id
+def top_level(client, profile: str, experiment: str = "plad-csg2d") -> dict[str, object]:
+    """{run name: run} of the top-level runs of a profile in one experiment."""
+    exp = client.get_experiment_by_name(experiment).experiment_id
     found = client.search_runs([exp], f"tags.`plad.profile` = '{profile}'")
     return {r.info.run_name: r for r in found if "mlflow.parentRunId" not in r.data.tags}
 
@@ -66,7 +67,11 @@ def test_stage_runs_nest_under_their_row_named_by_its_test_metric(store, client,
         ev.log_result(method="floor", metric="chamfer", higher_is_better=False, test=3.0)
     assert ft.row_id == ev.row_id
     row = client.get_run(ev.row_id)
-    assert row.info.run_name == "csg2d · st · chamfer 1.5" and row.info.status == "FINISHED"
+    # the domain is the experiment, the metric its description: the name is the method and its test value
+    assert row.info.run_name == "st · 1.5" and row.info.status == "FINISHED"
+    exp = client.get_experiment_by_name("plad-csg2d")
+    assert row.info.experiment_id == exp.experiment_id
+    assert exp.tags[R.NOTE_TAG].startswith("PLAD, csg2d: runs named `<method> · <test chamfer>`, lower is better.")
     # the same names in every domain, rounded as a table shows them
     assert row.data.metrics == {"test_metric": 1.5, "val_metric": 1.234568, "seconds_per_shape": 0.01235,
                                 "train_seconds": 12.3}
@@ -83,8 +88,8 @@ def test_stage_runs_nest_under_their_row_named_by_its_test_metric(store, client,
         assert got.data.tags["plad.stage"] == stage and got.data.tags["plad.method"] == "st"
     # nested runs of a stage (rounds) stay under the stage run
     top = top_level(client, "rows-a")
-    assert sorted(top) == ["csg2d · floor · chamfer 3", "csg2d · st · chamfer 1.5"]
-    floor = top["csg2d · floor · chamfer 3"]
+    assert sorted(top) == ["floor · 3", "st · 1.5"]
+    floor = top["floor · 3"]
     assert floor.data.metrics == {"test_metric": 3.0} and floor.data.tags["plad.method"] == "floor"
 
 
@@ -98,7 +103,8 @@ def test_a_row_shows_how_its_latest_stage_run_ended(store, client, tmp_path):
         again.log_result(metric="iou", higher_is_better=True, test=0.61234)
     assert again.resumed and again.row_id == first.row_id
     row = client.get_run(first.row_id)
-    assert row.info.status == "FINISHED" and row.info.run_name == "csg3d · ws · iou 0.6123"
+    assert row.info.status == "FINISHED" and row.info.run_name == "ws · 0.6123"
+    assert row.info.experiment_id == client.get_experiment_by_name("plad-csg3d").experiment_id
     assert row.data.tags["plad.better"] == "higher"
 
 
@@ -111,22 +117,30 @@ def test_a_row_per_profile_and_the_pipeline_row_holds_the_report(store, client, 
     with StageRun("pretrain", "csg2d", {}, b / "pre", params_path=params(b, "rows-d")) as pre_d:
         pass
     assert pre_c.row_id != pre_d.row_id
-    assert client.get_run(pre_c.row_id).info.run_name == "csg2d · sp"   # no test metric yet
+    assert client.get_run(pre_c.row_id).info.run_name == "sp"   # no test metric yet
     table = tmp_path / "table.md"
     table.write_text("| method | 2D CSG |\n")
     with StageRun("report", "csg2d,csg3d", {}, a / "rep", params_path=a / "params.yaml", row=R.PIPELINE) as rep:
         rep.log_row_artifact(table)
         rep.log_result(domain="csg2d", method="sp", metric="chamfer", higher_is_better=False, test=2.5, val=2.4)
+        # a domain no stage has run yet: its experiment is made, described and given its view
+        rep.log_result(domain="csg3d", method="floor", metric="iou", higher_is_better=True, test=0.25)
         with pytest.raises(RuntimeError, match="not a result row"):
             rep.log_result(test=1.0)
+    # the pipeline run is in the experiment plad; each domain's rows in the domain's
+    assert client.get_run(rep.row_id).info.experiment_id == client.get_experiment_by_name("plad").experiment_id
+    csg3d = client.get_experiment_by_name("plad-csg3d")
+    assert R.VIEW_TAG in csg3d.tags and "test iou>`, higher is better" in csg3d.tags[R.NOTE_TAG]
+    assert list(top_level(client, "rows-c", "plad-csg3d")) == ["floor · 0.25"]
     pipeline = client.get_run(rep.row_id)
     assert pipeline.info.run_name == "pipeline · rows-c" and pipeline.data.tags["plad.row"] == "pipeline"
     assert [f.path for f in client.list_artifacts(rep.row_id)] == ["table.md"]
     assert client.get_run(rep.run_id).data.tags["mlflow.parentRunId"] == rep.row_id
     sp = client.get_run(pre_c.row_id)
-    assert sp.info.run_name == "csg2d · sp · chamfer 2.5"
+    assert sp.info.run_name == "sp · 2.5"
     assert sp.data.metrics == {"train_seconds": 60.0, "test_metric": 2.5, "val_metric": 2.4}
-    assert sorted(top_level(client, "rows-c")) == ["csg2d · sp · chamfer 2.5", "pipeline · rows-c"]
+    assert sorted(top_level(client, "rows-c")) == ["sp · 2.5"]
+    assert sorted(top_level(client, "rows-c", "plad")) == ["pipeline · rows-c"]
 
 
 def test_without_a_row_or_inside_another_run_a_stage_run_is_not_under_a_row(store, client, tmp_path):
@@ -137,7 +151,7 @@ def test_without_a_row_or_inside_another_run_a_stage_run_is_not_under_a_row(stor
         with pytest.raises(RuntimeError, match="no row"):
             alone.log_result(test=1.0)
     assert alone.row_id is None and "mlflow.parentRunId" not in client.get_run(alone.run_id).data.tags
-    exp = client.get_experiment_by_name("plad").experiment_id
+    exp = client.get_experiment_by_name("plad-csg2d").experiment_id
     with mlflow.start_run(experiment_id=exp, run_name="a flow") as flow:
         with StageRun("evaluate", "csg2d", {}, tmp_path / "b", method="st", params_path=p) as inner:
             pass
@@ -146,16 +160,21 @@ def test_without_a_row_or_inside_another_run_a_stage_run_is_not_under_a_row(stor
     assert list(top_level(client, "rows-e")) == ["evaluate/st/csg2d"]   # the run without a row, as before
     with pytest.raises(ValueError, match="row"):
         StageRun("evaluate", "csg2d", {}, tmp_path / "c", row="results")
+    # a list of domains is no domain: its experiment would be neither
+    with pytest.raises(ValueError, match=r"MLflow experiment of domain 'csg2d,csg3d': expected one domain name"):
+        StageRun("evaluate", "csg2d,csg3d", {}, tmp_path / "d")
 
 
 def test_the_experiment_is_marked_as_model_training_once(store, client, tmp_path):
     with StageRun("evaluate", "csg2d", {}, tmp_path / "a", method="st", params_path=params(tmp_path, "rows-f")):
         pass
-    exp = client.get_experiment_by_name("plad")
+    exp = client.get_experiment_by_name("plad-csg2d")
     tags = exp.tags
-    assert tags[R.EXPERIMENT_KIND_TAG] == "custom_model_development" and "PLAD" in tags[R.NOTE_TAG]
+    assert tags[R.EXPERIMENT_KIND_TAG] == "custom_model_development" and "PLAD, csg2d" in tags[R.NOTE_TAG]
     view = json.loads(tags[R.VIEW_TAG])
     assert view["name"] == R.VIEW_NAME and json.loads(view["state"]) == R.results_view_state()
+    # no grouping: a group's row would average methods and baselines
+    assert "groupBy" not in json.loads(view["state"])
     assert R.results_view_path(exp.experiment_id) == (
         f"#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=plad-results")
     # a user's choice in the UI stays
@@ -171,7 +190,7 @@ def test_a_row_being_created_elsewhere_is_found_not_duplicated(store, client, tm
     released it finds the first one's row instead of creating another."""
     from plad.tracking.store import ensure_experiment
 
-    exp = ensure_experiment(client, store, "plad")
+    exp = ensure_experiment(client, store, "plad-csg2d")
     row = R.Row("rows-race", "csg2d", "st")
     ready = tmp_path / "ready"
     script = textwrap.dedent(f"""

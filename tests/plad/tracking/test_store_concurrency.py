@@ -60,20 +60,21 @@ def run_ids(results: list[tuple[int, int, list[str]]]) -> dict[int, str]:
 
 
 def stored_runs(db: Path) -> dict[str, tuple[str, str, str, list[tuple[int, float]]]]:
-    """{run id: (name of its row run, run name, status, [(step, loss)...])} of the stage runs of the
-    experiment ``plad`` (the row runs they nest under, plad.tracking.rows, left out), read with sqlite3."""
+    """{run id: (experiment, name of its row run, run name, status, [(step, loss)...])} of the stage runs of
+    the workers' experiments (``plad-worker<i>``: one per domain; the row runs they nest under,
+    plad.tracking.rows, left out), read with sqlite3."""
     with sqlite3.connect(db) as con:
-        runs = con.execute("SELECT r.run_uuid, r.name, r.status FROM runs r JOIN experiments e "
-                           "ON r.experiment_id = e.experiment_id WHERE e.name = 'plad'").fetchall()
-        names = {run_id: name for run_id, name, _ in runs}
+        runs = con.execute("SELECT r.run_uuid, r.name, r.status, e.name FROM runs r JOIN experiments e "
+                           "ON r.experiment_id = e.experiment_id WHERE e.name LIKE 'plad-worker%'").fetchall()
+        names = {run_id: name for run_id, name, *_ in runs}
         tags = dict(con.execute("SELECT run_uuid || '/' || key, value FROM tags").fetchall())
         out = {}
-        for run_id, name, status in runs:
+        for run_id, name, status, experiment in runs:
             if f"{run_id}/plad.row" in tags:
                 continue
             history = con.execute("SELECT step, value FROM metrics WHERE run_uuid = ? AND key = 'loss' "
                                   "ORDER BY step", (run_id,)).fetchall()
-            out[run_id] = (names.get(tags.get(f"{run_id}/mlflow.parentRunId")), name, status, history)
+            out[run_id] = (experiment, names.get(tags.get(f"{run_id}/mlflow.parentRunId")), name, status, history)
     return out
 
 
@@ -91,7 +92,7 @@ def test_six_first_runs_on_a_new_store_all_succeed_and_so_do_six_on_the_existing
     runs = stored_runs(db)
     assert set(runs) == set(first.values())
     for i, run_id in first.items():
-        assert runs[run_id] == (f"worker{i} · sp", "pretrain", "FINISHED", expected_history(i))
+        assert runs[run_id] == (f"plad-worker{i}", "sp", "pretrain", "FINISHED", expected_history(i))
     # the store was made once, in place: the lock file beside it, nothing half-made left
     assert sorted(p.name for p in db.parent.iterdir() if not p.is_dir()) == ["mlflow.db", "mlflow.db.lock"]
 
@@ -99,7 +100,7 @@ def test_six_first_runs_on_a_new_store_all_succeed_and_so_do_six_on_the_existing
     runs = stored_runs(db)
     assert set(runs) == set(first.values()) | set(again.values()) and len(runs) == 12
     for i, run_id in again.items():
-        assert runs[run_id] == (f"worker{i} · sp", "pretrain", "FINISHED", expected_history(i))
+        assert runs[run_id] == (f"plad-worker{i}", "sp", "pretrain", "FINISHED", expected_history(i))
     assert not left_behind(before)
 
 

@@ -116,7 +116,8 @@ def test_stage_run_logs_params_metrics_artifact(store, client, tmp_path, monkeyp
     # artifacts live beside the database, not under the current directory
     assert got.info.artifact_uri.startswith(root.as_uri())
     assert json.loads((tmp_path / "run" / "mlflow_run.json").read_text())["run_id"] == run.run_id
-    found = mlflow.search_runs(experiment_names=["plad"],
+    # in its domain's experiment
+    found = mlflow.search_runs(experiment_names=["plad-csg2d"],
                                filter_string="tags.`plad.pipeline` = 'test-basic'")
     assert list(found["run_id"]) == [run.run_id]
 
