@@ -87,7 +87,8 @@ def domain_note(domain: str, metric: str | None = None, higher_is_better: bool |
     return (f"{head} One run per method (a row of results/table.md) with `{TEST}`, `{VAL}`, `{SECONDS_PER_SHAPE}`,"
             f" `{TRAIN_SECONDS}` and the stop reason (tag `{STOPPED}`): Columns, or Views > \"{VIEW_NAME}\"; the "
             "chart view compares them. Expand a run for its stage runs (pretrain, finetune and its rounds, "
-            "evaluate). The report is in the experiment `plad`.")
+            "evaluate). Short names: seeded = lest_st_ws_search, +ref = with test-time refinement, b<k> = at "
+            "beam k; the tag `plad.method` holds the key. The report is in the experiment `plad`.")
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,8 @@ class Row:
         if self.domain is None:
             return f"pipeline · {self.profile}"
         # the domain is the experiment, the metric its description: the name shows what differs
-        return str(self.method) if test is None else f"{self.method} · {test:.4g}"
+        short = display_name(str(self.method))
+        return short if test is None else f"{short} · {test:.4g}"
 
     @property
     def tags(self) -> dict[str, str]:
@@ -128,6 +130,22 @@ def pipeline_row(profile: str) -> Row:
 
 def result_row(profile: str, domain: str, method: str) -> Row:
     return Row(profile, domain, method)
+
+
+#: the long method keys' names on MLflow's runs page, whose name column shows about 21 characters
+#: (docs/mlflow.md): the search-seeded method is "seeded", test-time refinement "+ref", a beam " b<k>"
+SHORT_NAMES = {"lest_st_ws_search": "seeded", "lest_st_per_round": "per-round"}
+
+
+def display_name(method: str) -> str:
+    """A result key as a run name shows it: ``lest_st_ws_search_refined`` -> ``seeded+ref``,
+    ``lest_st_ws_search_beam10`` -> ``seeded b10``; keys up to ``lest_st_ws`` stay as they are."""
+    if method.endswith("_refined"):
+        return display_name(method[: -len("_refined")]) + "+ref"
+    head, _, beam = method.rpartition("_beam")
+    if head and beam.isdigit():
+        return f"{display_name(head)} b{beam}"
+    return SHORT_NAMES.get(method, method)
 
 
 # -- the experiment ------------------------------------------------------------------------------------
@@ -280,5 +298,6 @@ def set_row_status(mlflow_client: Any, run_id: str, status: str) -> None:
 
 __all__ = ["EXPERIMENT_KIND_TAG", "NOTE_TAG", "PIPELINE", "PIPELINE_NOTE", "RESULT", "ROW_TAG", "SECONDS_PER_SHAPE",
            "STOPPED", "TEST", "TRAINING_KIND", "TRAIN_SECONDS", "VAL", "VIEW_KEY", "VIEW_NAME", "VIEW_TAG", "Row",
-           "describe_domain", "domain_note", "find_row", "log_result", "mark_training_experiment", "pipeline_row",
-           "result_row", "results_view_path", "results_view_state", "row_run", "runs_path", "set_row_status"]
+           "describe_domain", "display_name", "domain_note", "find_row", "log_result", "mark_training_experiment",
+           "pipeline_row", "result_row", "results_view_path", "results_view_state", "row_run", "runs_path",
+           "set_row_status"]

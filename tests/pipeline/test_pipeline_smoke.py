@@ -15,6 +15,7 @@ import sys
 import numpy as np
 import pytest
 
+from plad.tracking.rows import display_name
 from tests.conftest import REPO_ROOT
 
 pytestmark = [pytest.mark.skipif(shutil.which("dvc") is None, reason="dvc is not installed"), pytest.mark.pipeline,
@@ -144,7 +145,8 @@ def test_smoke_repro_top_level_is_the_results_table(smoke_run):
             test = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())["test"]["mean"]
             metric = "chamfer" if domain == "csg2d" else "iou"
             assert row["metrics.test_metric"] == pytest.approx(test, abs=1e-6)
-            assert row["tags.mlflow.runName"] == f"{key} · {test:.4g}" and row["tags.plad.metric"] == metric
+            assert row["tags.mlflow.runName"] == f"{display_name(key)} · {test:.4g}"
+            assert row["tags.plad.metric"] == metric
         for key in METHODS:   # fine-tuned: validation value, training time and stop reason under the same names
             row = mine[mine["tags.plad.method"] == key].iloc[0]
             assert row["metrics.val_metric"] > 0 and row["metrics.train_seconds"] > 0

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 
+from plad.tracking.rows import display_name
 from tests import procs
 from tests.browser import Browser, chromium
 from tests.conftest import under_ci
@@ -115,7 +116,7 @@ def expected_rows(root: Path, domain: str) -> dict[str, dict]:
     out = {}
     for method in ["sp", *METHODS, "floor"]:
         test = json.loads((root / "results" / "eval" / method / domain / "metrics.json").read_text())["test"]["mean"]
-        out[method] = {"name": f"{method} · {test:.4g}", "test": test}
+        out[method] = {"name": f"{display_name(method)} · {test:.4g}", "test": test}
     return out
 
 

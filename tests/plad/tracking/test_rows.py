@@ -214,3 +214,14 @@ def test_a_row_being_created_elsewhere_is_found_not_duplicated(store, client, tm
     assert out.split()[-1] == mine
     assert R.find_row(client, exp, row) == mine
     assert len(client.search_runs([exp], row.filter_string())) == 1
+
+
+def test_long_method_keys_get_names_the_runs_page_shows_whole():
+    assert [R.display_name(k) for k in ("st", "lest_st_ws", "lest_st_ws_search", "lest_st_ws_search_refined",
+                                         "lest_st_ws_search_beam10", "lest_st_per_round", "taught_refined")] == [
+        "st", "lest_st_ws", "seeded", "seeded+ref", "seeded b10", "per-round", "taught+ref"]
+    # every key the results table has fits the name column with a metric of 4 significant digits
+    keys = ["sp", "rl", "ws", "st", "lest", "lest_st", "lest_st_ws", "lest_st_per_round", "lest_st_ws_search",
+            "lest_st_ws_search_refined", "lest_st_ws_search_beam1", "lest_st_ws_search_beam5",
+            "lest_st_ws_search_beam10", "search", "floor", "taught", "taught_refined"]
+    assert max(len(R.Row("p", "csg2d", k).name(0.8613)) for k in keys) <= 19
