@@ -48,7 +48,7 @@ SECTION_CLASSES = {
     "prepare": "plad.stages.prepare:PrepareConfig", "synthesize": "plad.stages.synthesize:SynthesizeConfig",
     "pretrain": "plad.learn.pretrain:PretrainConfig", "evaluate": "plad.stages.evaluate:EvaluateConfig",
     "search_only": "plad.stages.search_only:SearchOnlyConfig", "label": "plad.learn.labels:LabelConfig",
-    "teach": "plad.learn.teach:TeachConfig", "finetune": "plad.stages.finetune:FinetuneStageConfig",
+    "teach": "plad.learn.teach:TeachConfig", "finetune": "plad.learn.finetune:FinetuneStageConfig",
     "report": "plad.stages.report:ReportConfig", "flows": "flows.finetune:FlowsConfig",
 }
 #: Top-level keys a params file may have.
