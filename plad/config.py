@@ -48,7 +48,7 @@ SECTION_CLASSES = {
     "prepare": "plad.stages.prepare:PrepareConfig", "synthesize": "plad.stages.synthesize:SynthesizeConfig",
     "pretrain": "plad.learn.pretrain:PretrainConfig", "evaluate": "plad.stages.evaluate:EvaluateConfig",
     "search_only": "plad.stages.search_only:SearchOnlyConfig", "label": "plad.learn.labels:LabelConfig",
-    "teach": "plad.learn.teach:TeachConfig", "finetune": "plad.stages.finetune:FinetuneStageConfig",
+    "teach": "plad.learn.teach:TeachConfig", "finetune": "plad.learn.finetune:FinetuneStageConfig",
     "report": "plad.stages.report:ReportConfig", "flows": "flows.finetune:FlowsConfig",
 }
 #: Top-level keys a params file may have.
@@ -82,6 +82,26 @@ def merge(*layers: Any) -> dict[str, Any]:
                 out[key] = merge(out[key], value)
             else:
                 out[key] = copy.deepcopy(value)
+    return out
+
+
+#: in a profile, the key of a mapping of mappings that stands for every key params.yaml sets there (e.g.
+#: ``finetune.base.methods."*"``: every method, those added later too); the profile's named keys apply after it
+EVERY = "*"
+
+
+def expand_every(override: Any, target: Any) -> Any:
+    """A profile's ``override`` with each :data:`EVERY` entry given to every key of the mapping it overrides in
+    ``target`` (the resolved params), merged under that key's own entry of ``override``."""
+    if not isinstance(override, dict):
+        return override
+    target = target if isinstance(target, dict) else {}
+    out: dict[str, Any] = {key: copy.deepcopy(override[EVERY]) for key in target} if EVERY in override else {}
+    for key, value in override.items():
+        if key == EVERY:
+            continue
+        value = expand_every(value, target.get(key))
+        out[key] = merge(out[key], value) if isinstance(out.get(key), dict) and isinstance(value, dict) else value
     return out
 
 
@@ -215,6 +235,13 @@ def _blocks(data: dict[str, Any], name: str, source: Path) -> dict[str, dict[str
 def _check_known(override: dict[str, Any], known: dict[str, Any], where: str, source: Path) -> None:
     """Every key of a profile's ``override`` is a key params.yaml sets (``known``); an empty mapping takes any."""
     for key, value in override.items():
+        if key == EVERY:
+            entries = [v for v in known.values() if isinstance(v, dict)]
+            if not isinstance(value, dict) or not entries:
+                raise ConfigError(f"{source}: {where}.{EVERY}: applies a mapping to every entry of a mapping of "
+                                  f"mappings")
+            _check_known(value, merge(*entries), f"{where}.{EVERY}", source)
+            continue
         if key not in known:
             raise ConfigError(f"{source}: {where}.{key} is not set in params.yaml; a profile only changes "
                               f"values params.yaml sets")
@@ -274,14 +301,20 @@ def load_params(path: str | os.PathLike = "params.yaml", profile: str | None = N
         if name in PER_DOMAIN:
             blocks, mine = _blocks(data, name, path), (_blocks(over, name, ppath) if name in over else {})
             touched.update(f"{name}.{b}" for b in mine)
-            out[name] = {d: {**merge(blocks.get(BASE), body, mine.get(BASE), mine.get(d)), "domain": d}
-                         for d, body in blocks.items() if d != BASE}
+            out[name] = {}
+            for d, body in blocks.items():
+                if d == BASE:
+                    continue
+                resolved = merge(blocks.get(BASE), body)
+                for layer in (mine.get(BASE), mine.get(d)):   # the profile's base block, then its domain's
+                    resolved = merge(resolved, expand_every(layer, resolved))
+                out[name][d] = {**resolved, "domain": d}
             continue
         if data[name] is not None and not isinstance(data[name], dict):
             raise ConfigError(f"{path}: {name} must be a mapping, got {data[name]!r}")
         if name in over:
             touched.add(name)
-        resolved = merge(data[name], over.get(name))
+        resolved = merge(data[name], expand_every(over.get(name), data[name]))
         for key in INJECTED.get(name, ()):
             if key in resolved:
                 raise ConfigError(f"{path}: {name}.{key}: not a key to set here; its one home is the top-level "

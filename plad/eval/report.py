@@ -32,6 +32,7 @@ from plad.domains import get_domain
 from plad.fsutil import atomic_write
 from plad.layout import FLOOR, METRICS, SEARCH, STATE, SUMMARY, Layout, eval_key
 from plad.learn.loop import read_state, upgrade_summary
+from plad.learn.method_registry import key_label
 from plad.tracking import (
     PIPELINE_EXPERIMENT,
     RunRecord,
@@ -41,14 +42,15 @@ from plad.tracking import (
     metric_history,
 )
 
-LABELS = {"sp": "SP", "rl": "RL", "ws": "WS", "st": "ST", "lest": "LEST", "lest_st": "LEST+ST",
-          "lest_st_ws": "LEST+ST+WS", SEARCH: "search, no network",
-          "lest_st_ws_search": "LEST+ST+WS + search-seeded P_BEST", FLOOR: "floor"}
+#: the rows that are no fine-tuning method; a method's label is what it declares (:func:`key_label`)
+LABELS = {"sp": "SP", SEARCH: "search, no network", FLOOR: "floor"}
 
 
 def label(key: str) -> str:
     if key in LABELS:
         return LABELS[key]
+    if (declared := key_label(key)) is not None:
+        return declared
     if key.endswith("_refined"):
         return label(key[: -len("_refined")]) + " + test-time refinement"
     head, _, beam = key.rpartition("_beam")

@@ -1,20 +1,22 @@
-"""PLAD methods: parsing method names and the (X, Z) sources they train on.
+"""PLAD methods: a method's params entry and the (X, Z) sources the mixtures train on.
 
-A PLAD method is a mixture of sources of (shape, program) pairs:
+A PLAD method is a mixture of sources of (shape, program) pairs, each a plugin of
+:mod:`plad.learn.method_registry`; the built-in ones:
 
-* ``st``   self-training: (real training shape, its best program in P_BEST);
-* ``lest`` latent execution self-training: (execution of that program, program);
-* ``ws``   wake-sleep: (execution of a program sampled from a generative model, program).
+* ``st``   self-training: (real training shape, its best program in P_BEST) (:data:`ST`);
+* ``lest`` latent execution self-training: (execution of that program, program) (:data:`LEST`);
+* ``ws``   wake-sleep: (execution of a program sampled from a generative model, program)
+  (:data:`plad.learn.rounds.WS`).
 
 Mixtures are written with ``+`` and optional weights, e.g. ``lest+st`` or
-``lest:2+st:1+ws:1``. Names are parsed exactly: a substring test would read
-``lest`` as containing ``st`` and silently train LEST+ST. Each batch is drawn
-whole from one source, chosen at random with the normalized weights.
+``lest:2+st:1+ws:1`` (:func:`plad.learn.method_registry.parse_mixture`). Each batch
+is drawn whole from one source, chosen at random with the normalized weights.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,9 +24,9 @@ import torch
 from plad.data.batching import split_batch, trim_batch
 from plad.device import to_device
 from plad.domains.base import split_padding
+from plad.learn.job import Job
+from plad.learn.method_registry import Mixture, PairSource, parse_mixture
 from plad.learn.pbest import PBest
-
-SOURCES = ("st", "lest", "ws")
 
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]   # shapes (N, *s), programs (N, L), lengths (N,)
 Source = Callable[[np.random.Generator, int], Batch]
@@ -58,7 +60,8 @@ class PBestSearchConfig:
 class MethodConfig:
     """One fine-tuning method of the comparison (params ``finetune.<domain>.methods.<key>``)."""
 
-    #: "rl" or a PLAD mixture of st / lest / ws, e.g. "lest+st"
+    #: a registered method ("rl") or a PLAD mixture of registered sources (st / lest / ws), e.g. "lest+st"
+    #: (:mod:`plad.learn.method_registry`)
     method: str = "lest+st"
     #: P_BEST mode of PLAD methods: all-time (the paper's) or per-round (the supplement's ablation); its one home
     pbest_mode: str = "all-time"
@@ -70,39 +73,6 @@ class MethodConfig:
     #: this method's rounds, at most ``plad.max_rounds`` (null: that); PLAD methods only (RL's epochs:
     #: ``rl.max_epochs``). The work that fixes a result: the profiles set it per method and domain
     max_rounds: int | None = None
-
-
-@dataclass(frozen=True)
-class Mixture:
-    names: tuple[str, ...]
-    weights: tuple[float, ...]          # normalized, same order as ``names``
-
-    def __str__(self) -> str:
-        return "+".join(self.names)
-
-
-def parse_mixture(text: str) -> Mixture:
-    """``"lest+st"`` or ``"lest:2+st:1"`` -> Mixture; raises ValueError naming the bad part."""
-    if not text or not text.strip():
-        raise ValueError("empty method: expected sources like lest+st")
-    names, weights = [], []
-    for part in text.strip().lower().split("+"):
-        name, _, weight = part.strip().partition(":")
-        name = name.strip()
-        if name not in SOURCES:
-            raise ValueError(f"unknown PLAD source {name!r} in {text!r}; sources are {', '.join(SOURCES)}")
-        if name in names:
-            raise ValueError(f"source {name!r} appears twice in {text!r}")
-        try:
-            w = float(weight) if weight.strip() else 1.0
-        except ValueError:
-            raise ValueError(f"weight {weight!r} of {name!r} in {text!r} is not a number") from None
-        if not w > 0:
-            raise ValueError(f"weight of {name!r} in {text!r} must be positive")
-        names.append(name)
-        weights.append(w)
-    total = sum(weights)
-    return Mixture(tuple(names), tuple(w / total for w in weights))
 
 
 def _pbest_batch(pbest: PBest, shapes: np.ndarray, idx: np.ndarray, device: torch.device) -> Batch:
@@ -122,6 +92,37 @@ def lest_source(pbest: PBest, device: torch.device) -> Source:
     def draw(rng: np.random.Generator, n: int) -> Batch:
         return _pbest_batch(pbest, pbest.executions, rng.choice(np.nonzero(pbest.has)[0], size=n), device)
     return draw
+
+
+@dataclass
+class RoundContext:
+    """What a source is built from in round ``rnd`` of the PLAD rounds (:meth:`PairSource.build`)."""
+
+    job: Job
+    #: the run's :class:`plad.learn.rounds.RoundsConfig`
+    cfg: Any
+    #: P_BEST after this round's inference (and search)
+    pbest: PBest
+    rnd: int
+    device: torch.device
+    #: seconds left of the run's budget
+    remaining: Callable[[], float]
+    #: ``step(name, fn, *args)``: runs a step of the round (a task of the Prefect flow)
+    step: Callable[..., Any]
+
+
+class _STSource(PairSource):
+    def build(self, ctx: RoundContext) -> tuple[Source, dict[str, float]]:
+        return st_source(ctx.pbest, ctx.job.train, ctx.device), {}
+
+
+class _LESTSource(PairSource):
+    def build(self, ctx: RoundContext) -> tuple[Source, dict[str, float]]:
+        return lest_source(ctx.pbest, ctx.device), {}
+
+
+#: the registered ``st`` and ``lest`` sources
+ST, LEST = _STSource(), _LESTSource()
 
 
 def mixture_batches(mixture: Mixture, sources: dict[str, Source], batch_size: int,
@@ -148,3 +149,8 @@ def mixture_batches(mixture: Mixture, sources: dict[str, Source], batch_size: in
                 pending[name] = split_batch(sources[name](rng, batch_size * bucket_pool), batch_size, rng)
             yield pending[name].pop()
     return batches
+
+
+# parse_mixture and Mixture are the registry's (they read its sources), here where the mixtures' callers look
+__all__ = ["LEST", "ST", "Batch", "MethodConfig", "Mixture", "PBestSearchConfig", "RoundContext", "Source",
+           "lest_source", "mixture_batches", "parse_mixture", "st_source"]

@@ -29,6 +29,7 @@ from plad.layout import BEST, STATE
 from plad.learn import distributed as dist
 from plad.learn.job import Job
 from plad.learn.loop import JsonStore, Limits, Loop, Unit
+from plad.learn.method_registry import Method
 from plad.model.checkpoint import read_checkpoint, save_checkpoint
 from plad.model.network import PLADNet
 from plad.model.sampling import NEG, ancestral_sample
@@ -183,3 +184,25 @@ def run_rl(job: Job, cfg: RLConfig, on_unit: Callable[[int, dict[str, Any]], Non
                 JsonStore(out / STATE, save=save, restore=restore))
     result = loop.run(epoch, start=validate, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit)
     return {"method": "rl", **result.summary()}
+
+
+class _RL(Method):
+    """The ``rl`` method: :func:`run_rl` with ``finetune.<domain>.rl``; its work is ``rl.max_epochs``."""
+
+    checkpoint = "learner.pt"
+
+    def check(self, spec, cfg, where: str) -> None:
+        if spec.max_rounds is not None:
+            raise ValueError(f"{where}.max_rounds: RL has no rounds; its epochs are rl.max_epochs")
+        if spec.search is not None:
+            raise ValueError(f"{where}.search: RL has no P_BEST to search for")
+
+    def work(self, spec, cfg) -> dict[str, int]:
+        return {"max_epochs": cfg.rl.max_epochs}
+
+    def run(self, job: Job, spec, cfg, hooks) -> dict:
+        return run_rl(job, cfg.rl, on_unit=hooks.on_unit)
+
+
+#: the registered ``rl`` method (:mod:`plad.learn.method_registry`)
+RL = _RL()

@@ -56,7 +56,8 @@ from plad.layout import BEST, LAST, STATE
 from plad.learn import distributed as dist
 from plad.learn.job import Job
 from plad.learn.loop import JsonStore, Limits, Loop, Objective, Unit
-from plad.learn.methods import MethodConfig, lest_source, mixture_batches, parse_mixture, st_source
+from plad.learn.method_registry import PairSource, get_source
+from plad.learn.methods import MethodConfig, RoundContext, mixture_batches, parse_mixture
 from plad.learn.pbest import PBest
 from plad.learn.train import TrainConfig, fit
 from plad.learn.ws import (
@@ -251,13 +252,11 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
             if (out / "pbest_round.json").exists():
                 stats.update(json.loads((out / "pbest_round.json").read_text()))
         stats["pbest_filled"] = float(pbest.has.mean())
-        sources = {"st": st_source(pbest, job.train, device), "lest": lest_source(pbest, device)}
-        if "ws" in mixture.names:
-            ws_programs, ws_shapes, ws_stats = run(
-                f"round {rnd}: wake-sleep generator", wake_sleep_samples, model, domain, pbest, cfg.ws, out, rnd,
-                len(job.train), job.seed * 104_729 + rnd, remaining(), job.precision)
-            stats.update(ws_stats)
-            sources["ws"] = ws_source(ws_programs, ws_shapes, device)
+        ctx = RoundContext(job, cfg, pbest, rnd, device, remaining, run)
+        sources = {}
+        for name in mixture.names:   # each source of the mixture, from its plugin (method_registry)
+            sources[name], columns = get_source(name).build(ctx)
+            stats.update(columns)
         batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd),
                                   bucket_pool=cfg.train.bucket_pool)
         # the round trains within what is left of the run's budget
@@ -279,3 +278,19 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
     result = loop.run(one_round, start=validate_round, keep_best=keep_best, restore_best=restore_best,
                       on_unit=hooks.on_unit)
     return {"method": method.method, **result.summary()}
+
+
+class _WSSource(PairSource):
+    """Wake-sleep: this round's samples of the generator fine-tuned on P_BEST (:func:`wake_sleep_samples`)."""
+
+    def build(self, ctx: RoundContext):
+        job = ctx.job
+        programs, shapes, stats = ctx.step(
+            f"round {ctx.rnd}: wake-sleep generator", wake_sleep_samples, job.model, job.domain, ctx.pbest,
+            ctx.cfg.ws, job.out_dir, ctx.rnd, len(job.train), job.seed * 104_729 + ctx.rnd, ctx.remaining(),
+            job.precision)
+        return ws_source(programs, shapes, ctx.device), stats
+
+
+#: the registered ``ws`` source (:mod:`plad.learn.method_registry`)
+WS = _WSSource()

@@ -170,12 +170,24 @@ def domains_of(stage: Stage) -> list[str]:
     return [section["domain"]] if "domain" in section else list(section["domains"])
 
 
+def method_plugin_modules() -> list[str]:
+    """The modules of the fine-tuning methods and sources registered in plad.learn.method_registry (imported by
+    name on first use, as domain plugins are): a fine-tuning stage loads its method's, and one template serves
+    every method."""
+    from plad.learn.method_registry import plugin_modules
+
+    return plugin_modules()
+
+
 def code_of(stage: Stage) -> frozenset[str]:
     from plad.domains import plugin_module
 
     files = set(closure(stage.module))
     for domain in domains_of(stage):
         files |= closure(plugin_module(domain))
+    if stage.group == "finetune":
+        for module in method_plugin_modules():
+            files |= closure(module)
     return frozenset(files)
 
 

@@ -102,6 +102,28 @@ def test_a_profile_only_changes_keys_params_sets(tmp_path, override, message):
         load_params(project(tmp_path, "p", params, {"p": override}))
 
 
+def test_a_profiles_star_entry_applies_to_every_entry_params_sets_those_added_later_too(tmp_path):
+    # the paper profile's "no count of rounds per method": a method added to params.yaml needs no line there
+    params = {"profile": "p", "domains": ["csg2d"],
+              "finetune": {"base": {"methods": {"a": {"method": "st", "max_rounds": 3}, "rl": {"method": "rl"}}},
+                           "csg2d": {"methods": {"b": {"method": "lest", "max_rounds": 2}}}}}
+    profile = {"finetune": {"base": {"methods": {"*": {"max_rounds": None}, "a": {"method": "lest"}}},
+                            "csg2d": {"methods": {"b": {"max_rounds": 7}}}}}
+    got = load_params(project(tmp_path, "p", params, {"p": profile}))["finetune"]["csg2d"]["methods"]
+    assert got == {"a": {"method": "lest", "max_rounds": None}, "rl": {"method": "rl", "max_rounds": None},
+                   "b": {"method": "lest", "max_rounds": 7}}
+    profile["finetune"]["base"]["methods"]["*"] = {"max_roudns": None}   # still only keys params.yaml sets
+    with pytest.raises(ConfigError, match=r"p.yaml: finetune.base.methods.\*.max_roudns is not set in params"):
+        load_params(project(tmp_path, "p", params, {"p": profile}))
+
+
+def test_the_paper_profile_runs_every_method_to_its_patience(tmp_path):
+    params = load_params(project(tmp_path, "paper"))
+    for d in params["domains"]:
+        assert {k: m.get("max_rounds") for k, m in params["finetune"][d]["methods"].items()} == \
+            dict.fromkeys(params["methods"])
+
+
 def test_params_errors_name_the_file_and_key(tmp_path):
     p = tmp_path / "params.yaml"
     p.write_text("profile: nothere\n")
