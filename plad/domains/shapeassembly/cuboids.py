@@ -6,8 +6,9 @@ the domain (the package) both use it without importing each other.
 Speed: a search executes tens of thousands of programs that share most of their parts (an insertion appends a
 part to a program it ran before, a rewrite changes one argument of one part). A part of a well-formed program
 only creates its own cuboid and copies and never changes an earlier cuboid (it moves the cuboid it declares;
-earlier cuboids and the bbox are only targets, which gain attachment records that only a mover reads), and
-the output rows are the cuboids in declaration order. So the executor state after each part, and the part's
+earlier cuboids and the bbox are only targets, and the attachment record a target would gain is only read by a
+cuboid that moves again, so the executor runs with ``record_targets`` off), and the output rows are the
+cuboids in declaration order. So the executor state after each part, and the part's
 rows, depend only on the tokens up to the part's end: :func:`token_cuboids` keeps them for recent prefixes
 (:data:`PREFIX_CACHE` of them) and runs only the parts after the longest prefix it has seen. A program whose
 statements are not of that checked form (:func:`_checked`) runs as before, from scratch.
@@ -20,7 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from plad.data.datasets.partnet.execute import F32, BlockState, Cuboid, ExecutionError, _place, execute_program
+from plad.data.datasets.partnet.execute import F32, BlockState, ExecutionError, _place, execute_program
 from plad.data.datasets.partnet.lang import Block, Program, Stmt
 from plad.domains.shapeassembly.tokens import segment_statements, to_statements, token_table
 
@@ -58,8 +59,7 @@ def token_cuboids(ids: Sequence[int]) -> np.ndarray:
         state = _resume(snap, segments[0][1][0])
         rows = list(snap.rows)
     else:
-        first = segments[0][1][0]
-        state = BlockState(first.args[1], first.args[2], _copy_name)
+        state = _fresh(segments[0][1][0])
     root_dims = np.asarray(segments[0][1][0].args[1], dtype=F32)
     for i in range(done, len(segments)):
         before = len(state.cuboids)
@@ -95,27 +95,27 @@ _PREFIXES: OrderedDict[tuple[int, ...], _Snapshot | ExecutionError] = OrderedDic
 
 
 class _Snapshot:
-    """The executor state after a prefix: its cuboids in declaration order with their record and move counts
-    at that moment (later parts only append to the lists of earlier cuboids), and the rows so far."""
+    """The executor state after a prefix: its cuboids by name (shared with the states resumed from it: in the
+    checked programs no later part changes an earlier cuboid, and with ``record_targets`` off an attach
+    leaves its target untouched) and the rows so far."""
 
     __slots__ = ("cuboids", "rows")
 
     def __init__(self, state: BlockState, rows: list[np.ndarray]):
-        self.cuboids = tuple((c, len(c.records), len(c.moves)) for c in state.cuboids.values())
+        self.cuboids = dict(state.cuboids)
         self.rows = tuple(rows)
 
 
+def _fresh(first: Stmt) -> BlockState:
+    """The executor of a token program before its statements (as execute_program makes it), leaving targets
+    untouched (their records are only read by a cuboid that moves again, which no checked program has)."""
+    return BlockState(first.args[1], first.args[2], _copy_name, record_targets=False)
+
+
 def _resume(snap: _Snapshot, first: Stmt) -> BlockState:
-    """A fresh BlockState in the snapshot's state: new cuboid objects (so the live run may rebind their
-    attributes and append to their lists) sharing the arrays, which no later part changes in place."""
-    state = BlockState(first.args[1], first.args[2], _copy_name)
-    state.cuboids = {}
-    for c, n_records, n_moves in snap.cuboids:
-        new = Cuboid.__new__(Cuboid)
-        new.name, new.pos, new.axes, new.dims, new.aligned = c.name, c.pos, c.axes, c.dims, c.aligned
-        new.records, new.moves = c.records[:n_records], c.moves[:n_moves]
-        new.parent, new.parent_axis, new.is_sub = c.parent, c.parent_axis, c.is_sub
-        state.cuboids[c.name] = new
+    """A BlockState in the snapshot's state: its own dict of the same cuboid objects."""
+    state = _fresh(first)
+    state.cuboids = dict(snap.cuboids)
     return state
 
 
@@ -127,20 +127,21 @@ def _remember(key: tuple[int, ...], value) -> None:
 
 
 @lru_cache(maxsize=1)
-def _kinds() -> tuple[str, ...]:
-    return tuple(t.kind for t in token_table().tokens)
+def _special() -> tuple[int, int, int]:
+    """The ids of ``Cuboid`` and ``END``, and the vocabulary size."""
+    table = token_table()
+    return table.index("Cuboid"), table.index("END"), len(table.tokens)
 
 
 def _segments(ids: tuple[int, ...]) -> list[tuple[int, tuple[Stmt, ...]]] | None:
     """The program cut before each ``Cuboid`` and at its first ``END``: (end index, statements) per segment,
     the header (``START h``) first; None when the program is not of the form :func:`token_cuboids` may cache
     (then it runs from scratch, exactly as before)."""
-    kinds = _kinds()
-    if not ids or not all(0 <= i < len(kinds) for i in ids):
+    cuboid, end_id, n = _special()
+    if not ids or min(ids) < 0 or max(ids) >= n:
         return None
-    cuts = [i for i, t in enumerate(ids) if kinds[t] == "cuboid"]
-    end = next((i for i, t in enumerate(ids) if kinds[t] == "end"), len(ids))
-    cuts = [0] + [c for c in cuts if c < end] + [end]
+    end = ids.index(end_id) if end_id in ids else len(ids)
+    cuts = [0] + [i for i in range(end) if ids[i] == cuboid] + [end]
     out = []
     for j in range(len(cuts) - 1):
         stmts = _checked(ids[cuts[j]:cuts[j + 1]], j)
