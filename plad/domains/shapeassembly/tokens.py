@@ -142,10 +142,16 @@ def attach_points(face: str, to_bbox: bool, mover_uv: tuple[float, float],
 
 def to_statements(ids: Sequence[int]) -> list[Stmt]:
     """Token ids of a valid program -> statements of the equivalent one-block program."""
+    return segment_statements(ids, 0)
+
+
+def segment_statements(ids: Sequence[int], count: int) -> list[Stmt]:
+    """Statements of the tokens ``ids``, read as :func:`to_statements` reads a program, with ``count`` cuboids
+    declared before them (the part of a program from one ``Cuboid`` to the next: count = the part's index)."""
     table = token_table()
     toks = [table.tokens[int(i)] for i in ids]
     stmts: list[Stmt] = []
-    pos, count = 0, 0
+    pos = 0
 
     def args(n: int) -> list:
         nonlocal pos

@@ -178,11 +178,16 @@ class BlockState:
 
     ``nearest`` is the grow step's closest-sample search (default: the exact
     8-candidate search; :func:`nearest_pair_brute` gives the original's).
+    ``record_targets``: whether an attach also records the point on its target (the target reads it only if it
+    moves later, as in the full language); False leaves targets untouched, for callers that know no target
+    moves again (the domain's token programs, whose executor state is then shared between programs).
     """
 
-    def __init__(self, bbox_dims, bbox_aligned: bool = True, copy_names=None, nearest=None):
+    def __init__(self, bbox_dims, bbox_aligned: bool = True, copy_names=None, nearest=None,
+                 record_targets: bool = True):
         self.cuboids: dict[str, Cuboid] = {"bbox": Cuboid("bbox", bbox_dims, bbox_aligned)}
         self.nearest = nearest or _nearest_pair
+        self.record_targets = record_targets
         # copy naming: the full language counts cuboids ("cube{N}"); the
         # discretized variant names copies after their parent
         self.copy_names = copy_names
@@ -207,7 +212,8 @@ class BlockState:
         q1 = np.asarray(q1, dtype=F32)
         q2 = np.asarray(q2, dtype=F32)
         g = b.world(q2)
-        b.records.append((q2, g))
+        if self.record_targets:
+            b.records.append((q2, g))
         k = len(a.records)
         if k == 0:
             a.pos = a.pos + (g - a.world(q1))
