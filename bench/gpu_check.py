@@ -267,7 +267,11 @@ def pretrain_batches(ctx: Context, rows: torch.Tensor, n: int, pool=None):
 
 def sample_rows(ctx: Context, n: int, seed: int) -> tuple[torch.Tensor, Timer]:
     """``n`` programs of the profile's sampler as rows, and the sampling's time."""
-    with Timer(torch.device("cpu")) as timer:
+    from plad.device import torch_threads
+
+    # one torch thread, as the synthesize stage samples (plad.device.torch_threads): on a many-core machine
+    # the default threads multiplied the sampler's CPU seconds (docs/gpu.md)
+    with torch_threads(1), Timer(torch.device("cpu")) as timer:
         programs = ctx.sampler(n, np.random.default_rng(seed))
     return rows_of(programs, ctx.domain.tokens.max_len), timer
 

@@ -27,6 +27,23 @@ PRECISIONS = ("auto", "bf16", "fp32")
 BF16_LOSS_RTOL = 5e-3
 
 
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run the block with ``n`` torch intra-op threads, then restore the count.
+
+    For work made of many tiny tensor operations, such as the grammar samplers (each program executed on its
+    own to check it): spreading an operation on a few hundred elements over a machine's cores only adds
+    synchronization. Measured on a 2-core machine: the samplers' programs per CPU second fall 2.5x (2D) to
+    5x (3D CSG) with 2 threads instead of 1; ``python -m bench.sampler``. Results do not depend on the
+    count (tests/plad/test_device.py)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def default_device() -> torch.device:
     """CUDA when a GPU is present, otherwise the CPU."""
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")

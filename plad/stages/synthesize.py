@@ -47,6 +47,7 @@ def from_array(array: np.ndarray) -> list[list[int]]:
 
 def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10_000) -> dict:
     from plad.config import ConfigError
+    from plad.device import torch_threads
     from plad.domains import get_domain
     from plad.provenance import stamp
 
@@ -62,8 +63,10 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
     for split, n, rng in (("val", cfg.val_programs, val_rng), ("train", cfg.train_programs, train_rng)):
         parts = []
         for start in tqdm(range(0, n, chunk), desc=f"synthesize {split}", unit="chunk", disable=None):
-            # labels in the domain's canonical form: the same shapes, no free choices left to guess
-            programs = [domain.canonical(p) for p in sample(min(chunk, n - start), rng)]
+            # labels in the domain's canonical form: the same shapes, no free choices left to guess. One torch
+            # thread: the sampler's tiny operations only slow down on many (the same programs; plad.device)
+            with torch_threads(1):
+                programs = [domain.canonical(p) for p in sample(min(chunk, n - start), rng)]
             parts.append(to_array(programs, domain.tokens.max_len))
         arrays[split] = np.concatenate(parts) if parts else np.zeros((0, domain.tokens.max_len), np.int16)
     if domain.complexity_kind is not None:

@@ -135,3 +135,28 @@ def test_cuda_matches_cpu_in_fp32_and_bf16_stays_within_tolerance(domain):
         torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
     assert abs(cuda_loss - cpu_loss) / cpu_loss < 1e-3
     assert abs(bf16_loss - cpu_loss) / cpu_loss < BF16_LOSS_RTOL
+
+
+def test_torch_threads_sets_the_count_for_the_block_and_restores_it():
+    from plad.device import torch_threads
+
+    before = torch.get_num_threads()
+    with pytest.raises(RuntimeError, match="inside"):
+        with torch_threads(1):
+            assert torch.get_num_threads() == 1
+            raise RuntimeError("inside")
+    assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("domain", ["csg2d", "csg3d", "shapeassembly"])
+def test_the_samplers_draw_the_same_programs_whatever_the_thread_count(domain):
+    """Why synthesize may sample on one thread (plad.device.torch_threads): the programs are the same."""
+    from plad.device import torch_threads
+    from plad.domains import get_domain
+
+    for name, sample in get_domain(domain).samplers().items():
+        drawn = []
+        for threads in (1, 2):
+            with torch_threads(threads):
+                drawn.append(sample(60, np.random.default_rng(7)))
+        assert drawn[0] == drawn[1], name
