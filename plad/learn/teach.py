@@ -9,9 +9,6 @@ from
 * ``aug``:  (execution, program) of a label changed by an exact symmetry of its grammar and an edit
   (:mod:`plad.learn.augment`), drawn afresh every batch: an unlimited stream near the real distribution.
 
-The labels are taught in their canonical form (:meth:`plad.domains.base.Domain.canonical`: the same
-execution), the form of the synthetic programs and of P_BEST's pseudo-labels.
-
 Every epoch measures the fit beside validation: the metric at beam ``fit_beam`` (greedy by default) and
 at beam ``fit_beam_wide`` on a fixed, evenly spaced sample of the labelled training shapes (``fit`` and
 ``fit_wide``), and the validation metric at beam ``val_beam`` on the validation shapes (``val``, which
@@ -26,7 +23,6 @@ method ``taught``.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import json
 import math
@@ -211,13 +207,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     n = len(labels) if cfg.label_limit is None else min(len(labels), cfg.label_limit)
     shapes = load_prepared(layout.prepared(cfg.domain), "train")
     real = shapes[labels.index[:n]]
-    # the canonical form of each label (same execution), as P_BEST stores its pseudo-labels
-    # (plad.learn.pbest) and synthesize its programs: the SP network and the PLAD rounds learned programs
-    # in that form, and search's own operand orders and parameter representatives are arbitrary choices the
-    # network could not predict from the shape (3D CSG: 99% of the labels differ from their canonical form)
-    canonical = [domain.canonical(p) for p in labels.programs[:n]]
-    recast = sum(c != p for c, p in zip(canonical, labels.programs[:n]))
-    programs = pad_programs(canonical, domain.tokens.max_len)
+    programs = pad_programs(labels.programs[:n], domain.tokens.max_len)
     executions = labels.executions[:n]
     val = load_split(layout.prepared(cfg.domain), "val", cfg.val_limit)[0]
     fit_idx = evenly_spaced_index(n, min(cfg.fit_shapes, n)) if cfg.fit_shapes else np.zeros(0, np.int64)
@@ -247,8 +237,6 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     fingerprint = {"labels": sha256_file(labels_file), "init": network_digest(start), "n": n,
                    "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
     fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
-    if recast:   # the programs taught are not the labels' own (where canonical() is the identity they are)
-        fingerprint["programs"] = hashlib.sha256(programs.tobytes()).hexdigest()
     history_path = out / HISTORY_FILE
     rows: list[dict] = []
     if history_path.exists() and _resumes(out / LAST, fingerprint):   # else the rows are of the other work
@@ -274,7 +262,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
                  fingerprint=fingerprint, precision=resolve_precision(cfg.precision, device))
     label_fit = float(labels.values[:n][fit_idx].mean()) if len(fit_idx) else None
     summary = {"key": TAUGHT, "domain": cfg.domain, "metric": metric.name, **result.summary(),
-               "labels": n, "labels_mean": round(float(labels.values[:n].mean()), 6), "labels_recast": int(recast),
+               "labels": n, "labels_mean": round(float(labels.values[:n].mean()), 6),
                "fit_labels_mean": None if label_fit is None else round(label_fit, 6),
                "fit_shapes": int(len(fit_idx)), "val_shapes": int(len(val)),
                "sources": weights, "init": str(cfg.init), "init_network_sha256": network_digest(start),

@@ -100,9 +100,6 @@ def test_teaching_records_fit_beside_validation_and_resumes(tmp_path, tiny_check
         assert {"val", "fit", "fit_wide"} <= set(r) and all(np.isfinite(float(r[k])) for k in ("val", "fit"))
     assert rows[1]["train_loss"] != "" and summary["units"] == 2 and summary["labels"] == 9
     labels = load_labels(layout.labels("csg2d"))
-    # the network learns each label's canonical form, as the PLAD rounds' pseudo-labels
-    domain = get_domain("csg2d")
-    assert summary["labels_recast"] == sum(domain.canonical(p) != p for p in labels.programs) > 0
     assert summary["fit_labels_mean"] == round(float(labels.values[[0, 4, 8]].mean()), 6)
     assert (out / "best.pt").exists() and json.loads((out / "summary.json").read_text())["key"] == "taught"
     assert json.loads(layout.finetune_summary("csg2d", "taught").read_text())["units"] == 2
