@@ -166,6 +166,23 @@ def _write_history(path: Path, rows: list[dict]) -> None:
     atomic_write_text(path, buf.getvalue())
 
 
+def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int) -> dict:
+    """What identifies a teaching run's work, so that a last.pt of other work is not resumed (fit starts over):
+    the labels, the start, how many labels, the config but for its safety net, device, threads and epochs."""
+    fingerprint = {"labels": labels_sha256, "init": init_digest, "n": n,
+                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
+    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
+    return fingerprint
+
+
+def _history(path: Path, last: Path, fingerprint: dict) -> list[dict]:
+    """The rows of ``path`` when the run continues ``last`` (the same work), else none: they are other work's."""
+    if not (path.exists() and _resumes(last, fingerprint)):
+        return []
+    with open(path, newline="") as fh:
+        return [dict(r) for r in csv.DictReader(fh)]
+
+
 def _resumes(last: Path, fingerprint: dict) -> bool:
     """Whether :func:`plad.learn.train.fit` will continue ``last`` (written under the same ``fingerprint``)."""
     from plad.model.checkpoint import CheckpointError, read_checkpoint
@@ -233,15 +250,9 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
             row["fit_wide"] = mean_metric(m, domain, fit_real, cfg.fit_beam_wide, cfg.infer_batch)
         return row
 
-    # a last.pt of other work is not resumed (fit starts over): the labels, the start, the config
-    fingerprint = {"labels": sha256_file(labels_file), "init": network_digest(start), "n": n,
-                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
-    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
+    fingerprint = _fingerprint(cfg, sha256_file(labels_file), network_digest(start), n)
     history_path = out / HISTORY_FILE
-    rows: list[dict] = []
-    if history_path.exists() and _resumes(out / LAST, fingerprint):   # else the rows are of the other work
-        with open(history_path, newline="") as fh:
-            rows = [dict(r) for r in csv.DictReader(fh)]
+    rows = _history(history_path, out / LAST, fingerprint)
 
     def on_unit(unit: int, row: dict) -> None:
         nonlocal rows
