@@ -50,7 +50,7 @@ from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
 from plad.learn.state import totals
 from plad.learn.synthetic import ExecutorPool, load_programs, make_batch
-from plad.learn.train import VAL_LOSS, TrainConfig, fit
+from plad.learn.train import VAL_LOSS, FitSetup, TrainConfig, fit
 from plad.model.checkpoint import MAX_PARAMETERS, estimate_parameters, read_checkpoint
 from plad.model.network import Architecture, ModelConfig, PLADNet, count_parameters
 
@@ -368,9 +368,10 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
     init = Init(init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if init_payload else None
     pool = ExecutorPool(domain.name, cfg.loader_workers) if cfg.loader_workers else None
     try:
-        result = fit(model, batches, validate, cfg.train, out, domain=cfg.domain, token_names=domain.tokens.names,
-                     budget_seconds=budget_seconds(cfg.max_minutes), on_unit=record, desc=f"pretrain {cfg.domain}",
-                     fingerprint=fingerprint, stages=curriculum, init=init, extra=provenance, precision=precision)
+        setup = FitSetup(cfg.domain, domain.tokens.names, budget_seconds=budget_seconds(cfg.max_minutes),
+                         on_unit=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint, stages=curriculum,
+                         init=init, extra=provenance, precision=precision)
+        result = fit(model, batches, validate, cfg.train, out, setup)
     finally:
         if pool is not None:
             pool.close()

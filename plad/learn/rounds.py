@@ -59,7 +59,7 @@ from plad.learn.loop import JsonStore, Limits, Loop, Objective, Unit
 from plad.learn.method_registry import PairSource, get_source
 from plad.learn.methods import MethodConfig, RoundContext, mixture_batches, parse_mixture
 from plad.learn.pbest import PBest
-from plad.learn.train import TrainConfig, fit
+from plad.learn.train import FitSetup, TrainConfig, fit
 from plad.learn.ws import (
     WSConfig,
     load_generator,
@@ -260,12 +260,12 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         batches = mixture_batches(mixture, sources, cfg.train.batch_size, seed=dist.rank_seed(job.seed * 7919 + rnd),
                                   bucket_pool=cfg.train.bucket_pool)
         # the round trains within what is left of the run's budget
-        result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir,
-                     domain=domain.name, token_names=names,
-                     objective=Objective("val", metric.higher_is_better), budget_seconds=remaining(),
-                     on_unit=(lambda e, row: hooks.on_epoch(rnd, e, row)) if hooks.on_epoch else None,
-                     desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd},
-                     precision=job.precision)
+        setup = FitSetup(domain.name, names, objective=Objective("val", metric.higher_is_better),
+                         budget_seconds=remaining(),
+                         on_unit=(lambda e, row: hooks.on_epoch(rnd, e, row)) if hooks.on_epoch else None,
+                         desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd},
+                         precision=job.precision)
+        result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir, setup)
         value = run(f"round {rnd}: validate", mean_metric, model, domain, job.val, cfg.val_beam_round,
                     cfg.infer_batch)
         # a time limit inside the round (the training's or the generator's share of the budget, a search step's)

@@ -206,7 +206,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     from plad.learn.loop import Objective, budget_seconds
     from plad.learn.methods import Mixture, mixture_batches
     from plad.learn.rounds import mean_metric
-    from plad.learn.train import fit
+    from plad.learn.train import FitSetup, fit
     from plad.model.checkpoint import load_model, network_digest
     from plad.provenance import stamp
     from plad.rewrite.pool import pad_programs
@@ -267,10 +267,10 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
         t0 = time.perf_counter()
         model.eval()
         on_unit(0, {**validate(model), "unit_seconds": time.perf_counter() - t0})
-    result = fit(model, batches, validate, cfg.train, out, domain=domain.name, token_names=domain.tokens.names,
-                 objective=Objective("val", metric.higher_is_better),
-                 budget_seconds=budget_seconds(cfg.max_minutes), on_unit=on_unit, desc=f"teach {cfg.domain}",
-                 fingerprint=fingerprint, precision=resolve_precision(cfg.precision, device))
+    result = fit(model, batches, validate, cfg.train, out, FitSetup(
+        domain.name, domain.tokens.names, objective=Objective("val", metric.higher_is_better),
+        budget_seconds=budget_seconds(cfg.max_minutes), on_unit=on_unit, desc=f"teach {cfg.domain}",
+        fingerprint=fingerprint, precision=resolve_precision(cfg.precision, device)))
     label_fit = float(labels.values[:n][fit_idx].mean()) if len(fit_idx) else None
     summary = {"key": TAUGHT, "domain": cfg.domain, "metric": metric.name, **result.summary(),
                "labels": n, "labels_mean": round(float(labels.values[:n].mean()), 6),

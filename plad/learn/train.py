@@ -183,6 +183,37 @@ class _LastCheckpoint:
             **(self.extra(state) if self.extra is not None else {})})
 
 
+@dataclass
+class FitSetup:
+    """What :func:`fit` is told besides the model, its data and :class:`TrainConfig`: the network's names
+    for its checkpoints and the run's optional hooks.
+
+    ``budget_seconds`` counts training time across resumes. ``on_unit(epoch, row)`` gets each epoch's
+    history row (train and validation metrics, ``lr``). ``loss_fn(model, batch)``: the (loss, accuracy)
+    trained on (default: the model's own loss). ``desc``: the progress line's label. ``fingerprint``
+    identifies the run's settings: a ``last.pt`` written under another fingerprint is not resumed.
+    ``stages`` (e.g. a curriculum, which ``batches`` reads) is told each epoch's metrics and saved with
+    ``last.pt``; see :class:`Stages`. ``init``: when ``out_dir`` holds no ``last.pt`` of this run, start
+    from another run's state as a new segment (see :class:`Init`); ``max_epochs`` and the budget then count
+    this segment's epochs and time. ``extra(loop_state)`` returns more keys for ``last.pt`` (e.g.
+    provenance). ``precision`` is the arithmetic of the training forward passes (:func:`train_step`);
+    validation is ``validate``'s own.
+    """
+
+    domain: str
+    token_names: list[str]
+    objective: Objective = VAL_LOSS
+    budget_seconds: float = math.inf
+    on_unit: Callable[[int, dict[str, Any]], None] | None = None
+    loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None
+    desc: str = "train"
+    fingerprint: dict | None = None
+    stages: Stages | None = None
+    init: Init | None = None
+    extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None
+    precision: Precision = FP32
+
+
 #: a batch's (loss, accuracy), e.g. the model's loss through :func:`plad.learn.distributed.data_parallel`
 StepLoss = Callable[[Batch], tuple[torch.Tensor, torch.Tensor]]
 
@@ -203,41 +234,28 @@ def train_step(model: PLADNet, opt: torch.optim.Optimizer, step_loss: StepLoss, 
 
 
 def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
-        validate: Callable[[PLADNet], dict[str, float]], cfg: TrainConfig, out_dir: str | Path, *,
-        domain: str, token_names: list[str], objective: Objective = VAL_LOSS,
-        budget_seconds: float = math.inf,
-        on_unit: Callable[[int, dict[str, Any]], None] | None = None,
-        loss_fn: Callable[[PLADNet, Batch], tuple[torch.Tensor, torch.Tensor]] | None = None,
-        desc: str = "train", fingerprint: dict | None = None, stages: Stages | None = None,
-        init: Init | None = None, extra: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
-        precision: Precision = FP32) -> LoopResult:
+        validate: Callable[[PLADNet], dict[str, float]], cfg: TrainConfig, out_dir: str | Path,
+        setup: FitSetup) -> LoopResult:
     """Train until early stopping, ``max_epochs`` or the time budget; resume from ``out_dir/last.pt``.
 
     ``batches(epoch)`` yields at least ``steps_per_epoch`` batches (shapes,
     programs, lengths) on the model's device; derive them from the epoch
     number so that a resumed run sees the same data (in a distributed run:
     this rank's part, see :mod:`plad.learn.distributed`). ``validate(model)``
-    returns metrics including ``objective.name``, the value selected on; it
+    returns metrics including ``setup.objective.name``, the value selected on; it
     runs on every rank (it may split its work across them). The
     best weights are written to ``out_dir/best.pt`` and loaded back into
-    ``model`` at the end. ``budget_seconds`` counts training time across
-    resumes. ``on_unit(epoch, row)`` gets each epoch's history row (train and
-    validation metrics, ``lr``). ``fingerprint`` identifies the run's settings:
-    a ``last.pt`` written under another fingerprint is not resumed. ``stages``
-    (e.g. a curriculum, which ``batches`` reads) is told each epoch's metrics
-    and saved with ``last.pt``; see :class:`Stages`. ``init``: when ``out_dir`` holds no ``last.pt`` of this
-    run, start from another run's state as a new segment (see :class:`Init`); ``max_epochs`` and the budget
-    then count this segment's epochs and time. ``extra(loop_state)`` returns more keys for ``last.pt`` (e.g.
-    provenance). ``precision`` is the arithmetic of the training forward passes (:func:`train_step`);
-    validation is ``validate``'s own.
+    ``model`` at the end. ``setup`` (:class:`FitSetup`) names the run and holds its optional hooks.
     """
+    domain, token_names, objective = setup.domain, setup.token_names, setup.objective
+    stages, init, precision = setup.stages, setup.init, setup.precision
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
         opt, mode="max" if objective.higher_is_better else "min", factor=cfg.lr_factor, patience=cfg.lr_patience,
         threshold=cfg.min_delta, threshold_mode="abs", min_lr=cfg.min_lr)
-    step_loss = dist.data_parallel(model, loss_fn or (lambda m, b: m.loss(*b)))
+    step_loss = dist.data_parallel(model, setup.loss_fn or (lambda m, b: m.loss(*b)))
     seed = torch.initial_seed()   # the caller's seed, before a resume restores the RNG state
 
     def epoch(unit: int, remaining: Callable[[], float]) -> Unit:
@@ -283,6 +301,9 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
             return
         model.load_state_dict(read_checkpoint(out / BEST)["state_dict"])
 
-    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, fingerprint, stages, init, extra)
-    loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, budget_seconds), store)
-    return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=on_unit, progress=desc)
+    store = _LastCheckpoint(out / LAST, model, opt, sched, domain, token_names, setup.fingerprint, stages, init,
+                            setup.extra)
+    loop = Loop("epoch", objective, Limits(cfg.max_epochs, cfg.patience, cfg.min_delta, setup.budget_seconds),
+                store)
+    return loop.run(epoch, keep_best=keep_best, restore_best=restore_best, on_unit=setup.on_unit,
+                    progress=setup.desc)

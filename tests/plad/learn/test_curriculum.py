@@ -12,7 +12,7 @@ from plad.domains.base import pad_programs
 from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig, pool
 from plad.learn.diagnostics import kind_gaps, prefix_gap
-from plad.learn.train import TrainConfig, fit
+from plad.learn.train import FitSetup, TrainConfig, fit
 from plad.model.network import ModelConfig, PLADNet
 from plad.stages.synthesize import to_array
 from tests.conftest import REPO_ROOT as REPO
@@ -179,7 +179,7 @@ def test_the_gap_is_zero_for_a_model_that_ignores_its_input_and_positive_once_it
         untrained = prefix_gap(model, *val)
         fit(model, few_shapes_batches(shuffled=shuffled), validate,
             TrainConfig(batch_size=32, lr=3e-3, steps_per_epoch=40, max_epochs=2, warmup_steps=10),
-            tmp_path / str(shuffled), domain="csg2d", token_names=CSG2D.tokens.names)
+            tmp_path / str(shuffled), FitSetup("csg2d", CSG2D.tokens.names))
         gaps[shuffled] = prefix_gap(model, *val)
     # a network that uses its input (trained on shapes that decide the program) pays for another shape's
     # prefix; the same network trained on shuffled (shape, program) pairs learns to ignore its input

@@ -7,7 +7,7 @@ import torch
 
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.learn.train import TrainConfig, fit
+from plad.learn.train import FitSetup, TrainConfig, fit
 from plad.model.checkpoint import CheckpointError, load_model, save_checkpoint
 from plad.model.decode import beam_search, greedy_decode, infer_programs
 from plad.model.network import Architecture, ModelConfig, PLADNet
@@ -54,8 +54,7 @@ def trained(tmp_path_factory, programs):
     out = tmp_path_factory.mktemp("tiny")
     result = fit(model, synthetic_batches(programs[:-256]), validate,
                  TrainConfig(batch_size=64, lr=3e-3, steps_per_epoch=40, max_epochs=5, patience=5),
-                 out, domain="csg2d", token_names=DOMAIN.tokens.names,
-                 on_unit=lambda e, row: history.append(row))
+                 out, FitSetup("csg2d", DOMAIN.tokens.names, on_unit=lambda e, row: history.append(row)))
     return model, history, result, out
 
 
@@ -130,7 +129,7 @@ def test_resume_after_a_kill_continues_identically(tmp_path, programs, written_b
         torch.manual_seed(1)
         model = model or PLADNet(tiny_config())
         fit(model, synthetic_batches(programs[:500], 32), validate, TrainConfig(max_epochs=epochs, **cfg), out,
-            domain="csg2d", token_names=DOMAIN.tokens.names)
+            FitSetup("csg2d", DOMAIN.tokens.names))
         return torch.load(out / "last.pt", weights_only=False)["state_dict"]
 
     straight = run(tmp_path / "a", 3)
