@@ -31,7 +31,7 @@ import csv
 import itertools
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -40,8 +40,8 @@ import torch
 
 from plad.config import ConfigError
 from plad.data.batching import bucketed
-from plad.device import check_precision, resolve_device, resolve_precision
-from plad.domains.base import pad_programs
+from plad.device import Precision, check_precision, resolve_device, resolve_precision
+from plad.domains.base import Domain, pad_programs
 from plad.fsutil import atomic_write_text, sha256_file
 from plad.layout import BEST, HISTORY, LAST, PROVENANCE, SUMMARY, Layout
 from plad.learn import distributed as dist
@@ -50,7 +50,7 @@ from plad.learn.diagnostics import prefix_gap
 from plad.learn.loop import budget_seconds
 from plad.learn.state import totals
 from plad.learn.synthetic import ExecutorPool, load_programs, make_batch
-from plad.learn.train import VAL_LOSS, FitSetup, TrainConfig, fit
+from plad.learn.train import VAL_LOSS, FitSetup, Init, TrainConfig, fit
 from plad.model.checkpoint import MAX_PARAMETERS, estimate_parameters, read_checkpoint
 from plad.model.network import Architecture, ModelConfig, PLADNet, count_parameters
 
@@ -100,7 +100,6 @@ class PretrainConfig:
         check_precision(self.precision)
 
 
-
 def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(train, val) program complexities: from the synthetic file, or computed for a file written before it
     recorded them."""
@@ -108,7 +107,6 @@ def complexities(domain, data: dict[str, torch.Tensor], path: Path) -> tuple[np.
         raise ConfigError(f"{path}: curriculum.enabled, but domain {domain.name} defines no program complexity")
     return tuple(data[f"{s}_complexity"].numpy() if f"{s}_complexity" in data
                  else domain.complexity(data[s].numpy()) for s in ("train", "val"))
-
 
 
 def real_val_shapes(path: Path, n: int) -> torch.Tensor:
@@ -119,7 +117,6 @@ def real_val_shapes(path: Path, n: int) -> torch.Tensor:
         raise ConfigError(f"{path}: prepared real shapes not found (real_val_shapes: {n}); run the prepare stage "
                           f"first or set real_val_shapes: 0")
     return torch.from_numpy(load_split(path, "val", n)[0])
-
 
 
 CONTINUE_LR = ("restart", "resume")
@@ -189,20 +186,70 @@ def _end_metrics(history: list[dict]) -> dict:
             if k.startswith(("real_val_", "val_")) or k in ("prefix_gap", "train_loss", "lr")}
 
 
+@dataclass
+class _Run:
+    """One call of :func:`pretrain`: what its phases share, as :func:`_set_up` made it."""
+
+    cfg: PretrainConfig
+    layout: Layout
+    domain: Domain
+    device: torch.device
+    train: torch.Tensor
+    val: torch.Tensor
+    curriculum: Curriculum | None
+    real: torch.Tensor | None
+    model: PLADNet
+    init_path: Path | None
+    init_payload: dict | None
+    precision: Precision
+    out: Path
+    bs: int   # cfg.train.batch_size
+    history: Path   # out / history.csv
+    last: Path   # out / last.pt
+
+
 def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init_path: Path | None = None) -> dict:
     """Train p(z|x) on the domain's synthetic programs; returns the summary (also written to disk).
 
     ``init_path``: the checkpoint ``cfg.init`` names, resolved by the caller (the stage resolves
     ``"shipped"``); by default ``cfg.init`` relative to the layout root.
     """
-    from datetime import datetime, timezone
+    run = _set_up(cfg, layout, _resolve_init(cfg, layout, init_path))
+    loader = _Loader(run)
+    validate = _validator(run)
+    record = _recorder(run.history, on_epoch)
+    fingerprint = _fingerprint(run)
+    if dist.is_main():
+        _rewrite_history(run, fingerprint, record)
+    prior, provenance = _provenance(run, fingerprint)
+    start = time.monotonic()
+    init = Init(run.init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if run.init_payload else None
+    loader.pool = ExecutorPool(run.domain.name, cfg.loader_workers) if cfg.loader_workers else None
+    try:
+        setup = FitSetup(cfg.domain, run.domain.tokens.names, budget_seconds=budget_seconds(cfg.max_minutes),
+                         on_unit=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint,
+                         stages=run.curriculum, init=init, extra=provenance, precision=run.precision)
+        result = fit(run.model, loader, validate, cfg.train, run.out, setup)
+    finally:
+        if loader.pool is not None:
+            loader.pool.close()
+    final = validate(run.model)
+    if run.last.exists():
+        record_ = provenance(read_checkpoint(run.last)["loop"])["provenance"]
+    else:   # a segment of no epochs: the model is the one continued, and so is its record
+        record_ = {"segments": prior, "totals": totals(prior)} if prior else None
+    summary = {"domain": cfg.domain, "parameters": count_parameters(run.model), **result.summary(),
+               "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(run.train),
+               **{k: round(v, 6) for k, v in final.items()},
+               **({"totals": record_["totals"]} if record_ else {})}
+    if dist.is_main():
+        _write_outputs(run, fingerprint, record_, summary)
+    return summary
 
-    from plad.domains import get_domain
-    from plad.learn.loop import LoopState
-    from plad.learn.train import Init
-    from plad.model.checkpoint import save_checkpoint
-    from plad.provenance import code_state, machine
 
+def _resolve_init(cfg: PretrainConfig, layout: Layout, init_path: Path | None) -> Path | None:
+    """The checkpoint a continued pretraining starts from (None: from scratch), after the checks of the
+    settings that say so."""
     if cfg.continue_lr not in CONTINUE_LR:
         raise ConfigError(f"pretrain.{cfg.domain}.continue_lr: {cfg.continue_lr!r}; one of {', '.join(CONTINUE_LR)}")
     check_epochs(cfg, init_path)
@@ -211,7 +258,12 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
             raise ConfigError(f"pretrain.{cfg.domain}.init: 'shipped' is resolved by the pretrain stage "
                               "(plad.stages.pretrain); pass init_path")
         init_path = Path(cfg.init) if Path(cfg.init).is_absolute() else layout.root / cfg.init
-    from plad.model.decode import greedy_decode
+    return init_path
+
+
+def _set_up(cfg: PretrainConfig, layout: Layout, init_path: Path | None) -> _Run:
+    """The device, the programs, the curriculum, the network (and the state it continues), the output folder."""
+    from plad.domains import get_domain
 
     domain = get_domain(cfg.domain)
     dist.init()   # under torchrun: join the other ranks (before the model goes to this rank's GPU)
@@ -220,7 +272,6 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     data = load_programs(layout.synthetic(cfg.domain))
-    train, val = data["train"], data["val"]
     curriculum = Curriculum(cfg.curriculum, *complexities(domain, data, layout.synthetic(cfg.domain))) \
         if cfg.curriculum.enabled else None
     real = real_val_shapes(layout.prepared(cfg.domain), cfg.real_val_shapes).to(device) \
@@ -236,37 +287,52 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         model.encoder.compile()   # in place: the state dict keeps its keys
     out = layout.pretrain_dir(cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
-    history = out / HISTORY
-    bs = cfg.train.batch_size
+    return _Run(cfg, layout, domain, device, data["train"], data["val"], curriculum, real, model, init_path,
+                init_payload, precision, out, cfg.train.batch_size, out / HISTORY, out / LAST)
 
-    program_lengths = (train >= 0).sum(1).numpy()
 
-    def indices(epoch: int) -> Iterator[np.ndarray]:
+class _Loader:
+    """``loader(epoch)``: the epoch's training batches, on the run's device; ``pool``, when set (just before
+    training), executes them in worker processes."""
+
+    def __init__(self, run: _Run):
+        self.run = run
+        self.pool: ExecutorPool | None = None
+        self.program_lengths = (run.train >= 0).sum(1).numpy()
+
+    def indices(self, epoch: int) -> Iterator[np.ndarray]:
         # a stream fixed by (seed, epoch): a resumed run trains on the same batches; ranks take turns
-        if curriculum is not None:   # the stage's mix with replay; every rank draws its own part
-            yield from curriculum.indices(epoch, cfg.seed, bs)
+        cfg, bs = self.run.cfg, self.run.bs
+        if self.run.curriculum is not None:   # the stage's mix with replay; every rank draws its own part
+            yield from self.run.curriculum.indices(epoch, cfg.seed, bs)
             return
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
         while True:
-            perm = torch.randperm(len(train), generator=gen)
+            perm = torch.randperm(len(self.run.train), generator=gen)
             for start in dist.chunk_starts(len(perm), bs):
                 yield perm[start:start + bs].numpy()
 
-    pool: ExecutorPool | None = None   # started just before training
-
-    def batches(epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
+    def __call__(self, epoch: int) -> Iterator[tuple[torch.Tensor, ...]]:
         # grouped by program length, bucket_pool of this rank's batches at a time (plad.data.batching); the
         # epoch's steps exactly, so that workers execute no batch that is not trained on
+        cfg, train = self.run.cfg, self.run.train
         rng = np.random.default_rng([cfg.seed, epoch, dist.rank()])
         rows = (train[torch.from_numpy(idx)] for idx in
-                itertools.islice(bucketed(indices(epoch), program_lengths, cfg.train.bucket_pool, rng),
+                itertools.islice(bucketed(self.indices(epoch), self.program_lengths, cfg.train.bucket_pool, rng),
                                  cfg.train.steps_per_epoch))
-        if pool is not None:
-            yield from pool.batches(rows, device)
+        if self.pool is not None:
+            yield from self.pool.batches(rows, self.run.device)
         else:
             for r in rows:
-                yield make_batch(domain, r, device)
+                yield make_batch(self.run.domain, r, self.run.device)
 
+
+def _validator(run: _Run) -> Callable[[PLADNet], dict[str, float]]:
+    """The epoch's validation: loss and accuracy on the synthetic validation programs, the greedy metric, the
+    prefix gap, and (when set) the real shapes' metric and the curriculum stage's own validation."""
+    from plad.model.decode import greedy_decode
+
+    cfg, domain, device, val, bs, curriculum = run.cfg, run.domain, run.device, run.val, run.bs, run.curriculum
     val_batches = [make_batch(domain, val[i:i + bs], device) for i in range(0, len(val), bs)]
     gap_batch = make_batch(domain, val[: max(2, cfg.gap_programs)], device)   # fixed: comparable across epochs
     metric = domain.metric
@@ -291,8 +357,8 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         shapes = torch.cat([b[0] for b in val_batches])[: cfg.val_metric_shapes]
         out = {"val_loss": loss, "val_acc": acc, f"val_{metric.name}": greedy_metric(m, shapes),
                "prefix_gap": prefix_gap(m, *gap_batch)}
-        if real is not None:
-            out[f"real_val_{metric.name}"] = greedy_metric(m, real)
+        if run.real is not None:
+            out[f"real_val_{metric.name}"] = greedy_metric(m, run.real)
         if curriculum is not None:   # the stage's own validation programs (the final stage's: all)
             rows = val[torch.from_numpy(curriculum.val_mask())]
             out["stage_val_loss"], out["stage_val_acc"] = (loss, acc) if curriculum.final else val_loss(
@@ -300,6 +366,12 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
             out["stage_prefix_gap"] = out["prefix_gap"] if curriculum.final or len(rows) < 2 else \
                 prefix_gap(m, *make_batch(domain, rows[: max(2, cfg.gap_programs)], device))
         return out
+
+    return validate
+
+
+def _recorder(history: Path, on_epoch) -> Callable[..., None]:
+    """``record(unit, row, notify=True)``: appends the epoch's row to ``history.csv`` and tells ``on_epoch``."""
 
     def record(unit: int, row: dict[str, float], notify: bool = True) -> None:
         # history.csv keeps its columns (DVC plots it: x epoch, y val_loss); the loop's own
@@ -316,38 +388,55 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         if on_epoch and notify:
             on_epoch(unit, metrics)
 
-    # settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)
-    fingerprint = {"model": model.cfg.to_dict(), "seed": cfg.seed, "batch_size": bs, "lr": cfg.train.lr,
-                   "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
-                   "synthetic_checksum": int(train[:1000].sum()) + int(val.sum()),
-                   "warmup_steps": cfg.train.warmup_steps, "curriculum": asdict(cfg.curriculum),
-                   # buckets change the batches (plain batches keep the fingerprint of earlier versions)
-                   **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {}),
-                   # a continued run resumes only from a last.pt that continued the same checkpoint the same way
-                   **({"init": sha256_file(init_path), "continue_lr": cfg.continue_lr} if init_path else {})}
-    last = out / LAST
-    if dist.is_main():
-        # history.csv is written again from the state the run starts from, never appended to as found: DVC
-        # deletes it before running the stage (a plot, not persisted) while last.pt persists, and a kill between
-        # last.pt's commit and the row's append leaves it a row short. The state: the last.pt a run resumes,
-        # else the checkpoint a new segment continues (its epochs come first), else none (a fresh run)
-        saved = read_checkpoint(last) if last.exists() else None
-        state = saved if saved is not None and saved.get("fingerprint") == fingerprint else init_payload
-        history.unlink(missing_ok=True)
-        if state is not None:
-            for row in LoopState.from_dict(state.get("loop") or state["train_state"], "epoch").history:
-                if row.get("unit", 0) > 0:
-                    record(row["unit"], row, notify=False)
+    return record
 
-    # provenance: the segments of the checkpoint continued, then this one (rebuilt from the loop state at
-    # every commit of last.pt, so that a killed run's checkpoint says what it holds)
+
+def _fingerprint(run: _Run) -> dict:
+    """The settings that make a checkpoint incompatible (budgets and epoch caps may change on resume)."""
+    cfg, train, init_path = run.cfg, run.train, run.init_path
+    return {"model": run.model.cfg.to_dict(), "seed": cfg.seed, "batch_size": run.bs, "lr": cfg.train.lr,
+            "steps_per_epoch": cfg.train.steps_per_epoch, "train_programs": len(train),
+            "synthetic_checksum": int(train[:1000].sum()) + int(run.val.sum()),
+            "warmup_steps": cfg.train.warmup_steps, "curriculum": asdict(cfg.curriculum),
+            # buckets change the batches (plain batches keep the fingerprint of earlier versions)
+            **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {}),
+            # a continued run resumes only from a last.pt that continued the same checkpoint the same way
+            **({"init": sha256_file(init_path), "continue_lr": cfg.continue_lr} if init_path else {})}
+
+
+def _rewrite_history(run: _Run, fingerprint: dict, record: Callable[..., None]) -> None:
+    """history.csv is written again from the state the run starts from, never appended to as found: DVC
+    deletes it before running the stage (a plot, not persisted) while last.pt persists, and a kill between
+    last.pt's commit and the row's append leaves it a row short. The state: the last.pt a run resumes,
+    else the checkpoint a new segment continues (its epochs come first), else none (a fresh run)."""
+    from plad.learn.loop import LoopState
+
+    saved = read_checkpoint(run.last) if run.last.exists() else None
+    state = saved if saved is not None and saved.get("fingerprint") == fingerprint else run.init_payload
+    run.history.unlink(missing_ok=True)
+    if state is not None:
+        for row in LoopState.from_dict(state.get("loop") or state["train_state"], "epoch").history:
+            if row.get("unit", 0) > 0:
+                record(row["unit"], row, notify=False)
+
+
+def _provenance(run: _Run, fingerprint: dict) -> tuple[list[dict], Callable[[dict], dict]]:
+    """The segments of the checkpoint continued, and ``provenance(loop_state)``: the ``last.pt`` keys that
+    record them and this one (rebuilt from the loop state at every commit of last.pt, so that a killed run's
+    checkpoint says what it holds)."""
+    from datetime import datetime, timezone
+
+    from plad.learn.loop import LoopState
+    from plad.provenance import code_state, machine
+
+    cfg, init_path, init_payload, device = run.cfg, run.init_path, run.init_payload, run.device
     prior = ((init_payload.get("provenance") or {}).get("segments") or [legacy_segment(init_payload)]) \
         if init_payload is not None else []
     here = {"recorded": True, **code_state(), "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "device": str(device), "threads": torch.get_num_threads(), "world": dist.world(), "machine": machine(),
             "init": {"file": init_path.name, "sha256": sha256_file(init_path)} if init_path else None,
             "continue_lr": cfg.continue_lr if init_path else None,
-            "synthetic": synthetic_record(layout, cfg.domain, len(train), fingerprint["synthetic_checksum"]),
+            "synthetic": synthetic_record(run.layout, cfg.domain, len(run.train), fingerprint["synthetic_checksum"]),
             # a path `init` is this machine's: the segment names the checkpoint by `init` (file name, sha256)
             "params": {**asdict(cfg), **({"init": init_path.name} if init_path and cfg.init != "shipped" else {})}}
 
@@ -357,52 +446,38 @@ def pretrain(cfg: PretrainConfig, layout: Layout = Layout(), on_epoch=None, init
         seconds = s.seconds - s.segment_seconds
         hours = seconds * (dist.world() if device.type == "cuda" else here["threads"]) / 3600
         segment = {**here, "epochs": [s.segment_unit + 1, s.unit], "steps": steps,
-                   "shapes_seen": steps * bs * dist.world(), "train_seconds": round(seconds, 1),
+                   "shapes_seen": steps * run.bs * dist.world(), "train_seconds": round(seconds, 1),
                    "cpu_hours": round(hours, 4) if device.type == "cpu" else None,
                    "gpu_hours": round(hours, 4) if device.type == "cuda" else None,
                    "end": _end_metrics(s.history if s.unit > s.segment_unit else [])}
         segments = [*prior, segment]
         return {"provenance": {"segments": segments, "totals": totals(segments)}}
 
-    start = time.monotonic()
-    init = Init(init_payload, VAL_LOSS, cfg.continue_lr == "restart", cfg.train.lr) if init_payload else None
-    pool = ExecutorPool(domain.name, cfg.loader_workers) if cfg.loader_workers else None
-    try:
-        setup = FitSetup(cfg.domain, domain.tokens.names, budget_seconds=budget_seconds(cfg.max_minutes),
-                         on_unit=record, desc=f"pretrain {cfg.domain}", fingerprint=fingerprint, stages=curriculum,
-                         init=init, extra=provenance, precision=precision)
-        result = fit(model, batches, validate, cfg.train, out, setup)
-    finally:
-        if pool is not None:
-            pool.close()
-    final = validate(model)
-    if last.exists():
-        record_ = provenance(read_checkpoint(last)["loop"])["provenance"]
-    else:   # a segment of no epochs: the model is the one continued, and so is its record
-        record_ = {"segments": prior, "totals": totals(prior)} if prior else None
-    summary = {"domain": cfg.domain, "parameters": count_parameters(model), **result.summary(),
-               "wall_seconds_this_call": round(time.monotonic() - start, 1), "train_programs": len(train),
-               **{k: round(v, 6) for k, v in final.items()},
-               **({"totals": record_["totals"]} if record_ else {})}
-    if dist.is_main():
-        if not last.exists() and init_payload is not None:
-            # a segment of no epochs still leaves a state to continue or ship: the one it continued, now with
-            # its record and this run's fingerprint (so that running it again changes nothing)
-            from plad.learn.loop import upgrade_state
+    return prior, provenance
 
-            state = init_payload.get("loop") or upgrade_state(init_payload["train_state"], "epoch")
-            keep = {k: v for k, v in init_payload.items()
-                    if k not in ("format", "domain", "tokens", "config", "state_dict", "loop", "train_state")}
-            save_checkpoint(last, model, cfg.domain, domain.tokens.names,
-                            {**keep, "loop": LoopState.from_dict(state, "epoch").new_segment(VAL_LOSS).to_dict(),
-                             "fingerprint": fingerprint, **({"provenance": record_} if record_ else {})})
-        if record_ is not None:   # the selected model says what it holds too
-            best = read_checkpoint(out / BEST)
-            save_checkpoint(out / BEST, model, cfg.domain, domain.tokens.names,
-                            {k: best[k] for k in ("unit", "val") if k in best} | {"provenance": record_})
-            atomic_write_text(out / PROVENANCE, json.dumps(record_, indent=2) + "\n")
-        atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
-    return summary
+
+def _write_outputs(run: _Run, fingerprint: dict, record_: dict | None, summary: dict) -> None:
+    """Rank 0's files after training: ``last.pt`` of a segment of no epochs, the provenance in ``best.pt`` and
+    ``provenance.json``, ``summary.json``."""
+    from plad.learn.loop import LoopState, upgrade_state
+    from plad.model.checkpoint import save_checkpoint
+
+    cfg, out, model, names, init_payload = run.cfg, run.out, run.model, run.domain.tokens.names, run.init_payload
+    if not run.last.exists() and init_payload is not None:
+        # a segment of no epochs still leaves a state to continue or ship: the one it continued, now with
+        # its record and this run's fingerprint (so that running it again changes nothing)
+        state = init_payload.get("loop") or upgrade_state(init_payload["train_state"], "epoch")
+        keep = {k: v for k, v in init_payload.items()
+                if k not in ("format", "domain", "tokens", "config", "state_dict", "loop", "train_state")}
+        save_checkpoint(run.last, model, cfg.domain, names,
+                        {**keep, "loop": LoopState.from_dict(state, "epoch").new_segment(VAL_LOSS).to_dict(),
+                         "fingerprint": fingerprint, **({"provenance": record_} if record_ else {})})
+    if record_ is not None:   # the selected model says what it holds too
+        best = read_checkpoint(out / BEST)
+        save_checkpoint(out / BEST, model, cfg.domain, names,
+                        {k: best[k] for k in ("unit", "val") if k in best} | {"provenance": record_})
+        atomic_write_text(out / PROVENANCE, json.dumps(record_, indent=2) + "\n")
+    atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
 
 
 def synthetic_record(layout: Layout, domain: str, train_programs: int, checksum: int) -> dict:
