@@ -59,18 +59,33 @@ def check_training_state(path: str | os.PathLike, payload: dict[str, Any], cfg: 
     * the provenance, where there is one, holds segments of contiguous epochs ending at the loop's unit,
       whose totals are the ones recorded.
     """
-    import random
-
     if cfg is None:
         cfg, _ = check_checkpoint(path, payload)
     where = f"{path}:"
     for key in ("optimizer", "scheduler", "rng"):
         if key not in payload:
             raise CheckpointError(f"{where} no {key!r} entry: not a training state to continue")
-    # -- optimizer
+    _check_optimizer(where, payload["optimizer"], cfg)
+    _check_schedule(where, payload["scheduler"])
+    _check_rng(where, payload["rng"])
+    # -- loop state
+    loop = _check_loop(where, payload)
+    # -- curriculum
+    stages = payload.get("stages")
+    if stages is not None:
+        if not isinstance(stages, dict) or not all(_is_int(stages.get(k)) and stages[k] >= 0
+                                                   for k in ("stage", "stage_steps", "stale")) or \
+                not _is_number(stages.get("best_loss")) or math.isnan(stages["best_loss"]):
+            raise CheckpointError(f"{where} its curriculum state is not one (stage, stage_steps, stale, best_loss)")
+    # -- provenance
+    if "provenance" in payload:
+        _check_provenance(where, payload["provenance"], loop["unit"])
+
+
+def _check_optimizer(where: str, opt: Any, cfg: ModelConfig) -> None:
+    """Adam's state of exactly the network of ``cfg`` (see :func:`check_training_state`)."""
     with torch.device("meta"):
         shapes = [tuple(p.shape) for p in PLADNet(cfg).parameters()]
-    opt = payload["optimizer"]
     if not isinstance(opt, dict) or not isinstance(opt.get("state"), dict) or \
             not isinstance(opt.get("param_groups"), list) or len(opt["param_groups"]) != 1 or \
             not isinstance(opt["param_groups"][0], dict):
@@ -110,8 +125,10 @@ def check_training_state(path: str | os.PathLike, payload: dict[str, Any], cfg: 
                                       f"values (Adam's moments of a diverged or damaged run)")
         if bool((state["exp_avg_sq"] < 0).any()):
             raise CheckpointError(f"{where} the optimizer's exp_avg_sq of parameter {pid} holds negative values")
-    # -- learning-rate schedule (a plateau rule)
-    sched = payload["scheduler"]
+
+
+def _check_schedule(where: str, sched: Any) -> None:
+    """A plateau rule's state, with numbers where it keeps numbers."""
     if not isinstance(sched, dict):
         raise CheckpointError(f"{where} the learning-rate schedule's state is not a mapping")
     if sched.get("mode", "min") not in ("min", "max") or sched.get("threshold_mode", "abs") not in ("rel", "abs"):
@@ -127,8 +144,12 @@ def check_training_state(path: str | os.PathLike, payload: dict[str, Any], cfg: 
         if key in sched and (not isinstance(sched[key], (list, tuple)) or
                              not all(_is_number(v) and math.isfinite(v) and v >= 0 for v in sched[key])):
             raise CheckpointError(f"{where} the learning-rate schedule's {key} is {sched[key]!r}")
-    # -- random number generators: each state set on a fresh generator
-    rng = payload["rng"]
+
+
+def _check_rng(where: str, rng: Any) -> None:
+    """The generators' states: each set on a fresh generator."""
+    import random
+
     try:
         if not isinstance(rng, dict):
             raise TypeError("not a mapping")
@@ -139,18 +160,6 @@ def check_training_state(path: str | os.PathLike, payload: dict[str, Any], cfg: 
     except Exception as err:   # each generator raises its own types for a state it cannot take
         raise CheckpointError(f"{where} its random generators' state cannot be restored "
                               f"({err.__class__.__name__}: {one_line(err)[:120]})") from None
-    # -- loop state
-    loop = _check_loop(where, payload)
-    # -- curriculum
-    stages = payload.get("stages")
-    if stages is not None:
-        if not isinstance(stages, dict) or not all(_is_int(stages.get(k)) and stages[k] >= 0
-                                                   for k in ("stage", "stage_steps", "stale")) or \
-                not _is_number(stages.get("best_loss")) or math.isnan(stages["best_loss"]):
-            raise CheckpointError(f"{where} its curriculum state is not one (stage, stage_steps, stale, best_loss)")
-    # -- provenance
-    if "provenance" in payload:
-        _check_provenance(where, payload["provenance"], loop["unit"])
 
 
 def _check_loop(where: str, payload: dict[str, Any]) -> dict[str, Any]:
