@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from plad.tracking.readback import RunRecord, latest_finished_run, metric_history
 from plad.tracking.registry import (
     champion_tags,
     download_checkpoint,
@@ -30,16 +31,7 @@ from plad.tracking.registry import (
     set_champion,
     set_version_tags,
 )
-from plad.tracking.runs import (
-    RUN_FILE,
-    ChildRun,
-    RunRecord,
-    StageRun,
-    flatten_params,
-    latest_finished_run,
-    metric_history,
-    pipeline_tags,
-)
+from plad.tracking.runs import RUN_FILE, ChildRun, StageRun, flatten_params, pipeline_tags
 from plad.tracking.serving import legacy_pyfunc_class, load_checkpoint_pyfunc, load_registered, pip_requirements
 from plad.tracking.store import (
     PIPELINE_EXPERIMENT,

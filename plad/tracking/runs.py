@@ -22,6 +22,11 @@ from plad.config import load_params, profile_path
 from plad.fsutil import atomic_write_text
 from plad.layout import SP
 from plad.provenance import code_state, params_hash
+
+# reading runs back: plad.tracking.readback (its names stay importable from here)
+from plad.tracking.readback import RunRecord as RunRecord
+from plad.tracking.readback import latest_finished_run as latest_finished_run
+from plad.tracking.readback import metric_history as metric_history
 from plad.tracking.registry import FULL, SUBSET, TEST_SET_TAG, UNKNOWN, model_name, tag_version_with_run
 from plad.tracking.rows import (
     PIPELINE,
@@ -489,29 +494,3 @@ class StageRun:
         uri = log_pyfunc(checkpoint_path, registered_name=name, beam=beam)
         tag_version_with_run(name, uri.rsplit("/", 1)[-1], tags)
         return uri
-
-
-# -- reading runs back ------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True)
-class RunRecord:
-    """What a finished run left: its id, last metric values and tags."""
-    run_id: str
-    metrics: dict[str, float]
-    tags: dict[str, str]
-
-
-def latest_finished_run(experiment_ids: str | list[str], tags: Mapping[str, str]) -> RunRecord | None:
-    """The FINISHED run of the experiment(s) with all these tag values that ended last, or ``None``."""
-    ids = [experiment_ids] if isinstance(experiment_ids, str) else list(experiment_ids)
-    where = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())
-    runs = client().search_runs(ids, f"{where} and attributes.status = 'FINISHED'",
-                                order_by=["attributes.end_time DESC"], max_results=1)
-    if not runs:
-        return None
-    run = runs[0]
-    return RunRecord(run.info.run_id, dict(run.data.metrics), dict(run.data.tags))
-
-
-def metric_history(run_id: str, key: str) -> list[tuple[int, float]]:
-    """Every logged (step, value) of one metric of a run, in the store's order."""
-    return [(m.step, m.value) for m in client().get_metric_history(run_id, key)]
