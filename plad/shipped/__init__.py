@@ -1,3 +1,7 @@
+# size: one protocol, kept whole: the shipped models and the pretrained networks are one ShippedModel, whose
+# verify() re-reads either kind under the domain's lock, and both are replaced by the same pending-file
+# renames (_pending, _settle, _write_pair; the docstring below); moving the pretrained half to a module of its
+# own would make an import circle with this one (tests/plad/test_layers.py). No function over 100 lines.
 """The trained models shipped with the package: one small checkpoint per domain and its sidecar.
 
 Layout of the folder (this package's directory, or ``$PLAD_SHIPPED_DIR``)::
