@@ -9,7 +9,7 @@
     plad search DOMAIN shape.npy [--effort fast|default|best] [--set insertions=8]
     plad models
     plad models ship DOMAIN CHECKPOINT --metrics results/eval/METHOD/DOMAIN/metrics.json
-    plad config finetune.csg3d [--profile smoke] [--set key=lest]
+    plad config SECTION [--profile P] [--set KEY=VALUE]
 
 DOMAIN is a registered domain (``plad --help`` lists them); PROGRAM is
 program text or a ``.txt`` file holding it. What a domain offers (its output

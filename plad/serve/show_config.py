@@ -1,6 +1,6 @@
 """``plad config SECTION [--profile P] [--set KEY=VALUE]``: a stage's configuration as the stage builds it.
 
-The section of the params file (``pretrain.csg3d``: the ``base`` block merged with the domain's block), the
+The section of the params file (``pretrain.<domain>``: the ``base`` block merged with the domain's block), the
 profile's override file on top (its base block, then its domain block; ``--profile`` in place of the file's
 ``profile`` key, as ``dvc exp run -S profile=...`` would), then the ``--set`` overrides, built into the
 stage's config class (:data:`plad.config.SECTION_CLASSES`: every key typed and checked, the defaults filled
@@ -113,7 +113,7 @@ def add_parser(sub: Any) -> None:
                                    "(base merged with the domain's block), the profile's overrides, then --set, "
                                    "typed and with the defaults filled in, as YAML.")
     p.add_argument("section", help="a section of the params file: prepare, report, flows, or a per-domain one "
-                                   "with its domain, e.g. finetune.csg3d")
+                                   "with its domain, e.g. finetune.<domain>")
     p.add_argument("--profile", default=None,
                    help="apply this profile (profiles/PROFILE.yaml) instead of the params file's `profile`")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -145,7 +145,7 @@ def domain_experiment(domain: str) -> str:
     column and a chart of an experiment compare one metric (Chamfer distance in 2D, IoU in 3D), never two."""
     if not isinstance(domain, str) or not re.fullmatch(r"[A-Za-z0-9][\w.-]*", domain):
         raise ValueError(f"MLflow experiment of domain {domain!r}: expected one domain name (letters, digits, "
-                         "'_', '-', '.'), e.g. csg2d")
+                         "'_', '-', '.')")
     return DOMAIN_EXPERIMENT_PREFIX + domain
 
 

@@ -112,6 +112,6 @@ def test_two_process_finetuning_splits_inference_and_keeps_ranks_equal(tmp_path,
     assert np.allclose(pbest.values, values, atol=1e-9)
     # one stage run per method (rank 0's), each under its row run (plad.tracking.rows)
     names = mlflow_runs(tmp_path / "mlflow.db")
-    assert [n for n in names if n.startswith("csg2d · ")] == ["csg2d · lest_st_ws", "csg2d · rl"]
+    assert sorted(n for n in names if n in keys) == ["lest_st_ws", "rl"]   # rows: named by method
     assert names.count("finetune") == 2
     assert left_behind(before) == []
