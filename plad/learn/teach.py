@@ -37,7 +37,7 @@ import torch
 from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
 from plad.layout import LAST, SUMMARY, Layout
-from plad.learn.train import TrainConfig
+from plad.learn.train import TrainConfig, resumes
 
 #: the method key of a taught network (its run folder and its evaluation)
 TAUGHT = "taught"
@@ -177,22 +177,10 @@ def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int)
 
 def _history(path: Path, last: Path, fingerprint: dict) -> list[dict]:
     """The rows of ``path`` when the run continues ``last`` (the same work), else none: they are other work's."""
-    if not (path.exists() and _resumes(last, fingerprint)):
+    if not (path.exists() and resumes(last, fingerprint)):
         return []
     with open(path, newline="") as fh:
         return [dict(r) for r in csv.DictReader(fh)]
-
-
-def _resumes(last: Path, fingerprint: dict) -> bool:
-    """Whether :func:`plad.learn.train.fit` will continue ``last`` (written under the same ``fingerprint``)."""
-    from plad.model.checkpoint import CheckpointError, read_checkpoint
-
-    if not last.exists():
-        return False
-    try:
-        return read_checkpoint(last).get("fingerprint") == fingerprint
-    except CheckpointError:   # fit refuses a damaged state in its own words
-        return True
 
 
 def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -> dict:

@@ -32,7 +32,7 @@ from plad.layout import BEST, LAST
 from plad.learn import distributed as dist
 from plad.learn.loop import Limits, Loop, LoopResult, LoopState, Objective, Unit, upgrade_state
 from plad.learn.state import check_training_state
-from plad.model.checkpoint import read_checkpoint, save_checkpoint
+from plad.model.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from plad.model.network import PLADNet
 
 log = logging.getLogger(__name__)
@@ -118,6 +118,22 @@ class Init:
     lr: float = 1e-3
 
 
+def _same_work(payload: dict[str, Any], fingerprint: dict | None) -> bool:
+    """Whether a ``last.pt`` payload was written by the work ``fingerprint`` names (else :func:`fit` starts over)."""
+    return payload.get("fingerprint") == fingerprint
+
+
+def resumes(last: Path, fingerprint: dict | None) -> bool:
+    """Whether :func:`fit` will continue ``last`` rather than start over (a damaged file: fit refuses it in its
+    own words, so it counts as continued here)."""
+    if not last.exists():
+        return False
+    try:
+        return _same_work(read_checkpoint(last), fingerprint)
+    except CheckpointError:
+        return True
+
+
 class _LastCheckpoint:
     """The loop's store for :func:`fit`: weights, optimizer, schedule, RNGs and loop state in one atomic ``last.pt``."""
 
@@ -132,7 +148,7 @@ class _LastCheckpoint:
 
     def load(self) -> dict[str, Any] | None:
         payload = read_checkpoint(self.path) if self.path.exists() else None
-        if payload is not None and payload.get("fingerprint") != self.fingerprint:
+        if payload is not None and not _same_work(payload, self.fingerprint):
             log.warning("%s was written with other settings; starting over", self.path)
             payload = None
         if payload is not None:   # a damaged state is refused in one line (CheckpointError), never resumed

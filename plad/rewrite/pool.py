@@ -120,15 +120,11 @@ def run_chunks(domain: str, kind: str, chunks: Sequence[Chunk], overrides: dict[
         return
     workers = max(1, min(int(workers), len(jobs)))
     if workers == 1:
-        import torch
+        from plad.device import torch_threads
 
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
+        with torch_threads(1):
             for job in jobs:
                 yield _run(job)
-        finally:
-            torch.set_num_threads(threads)
         return
     # spawn, not fork: a parent that has run OpenMP regions (training) cannot safely fork workers that use
     # them; the children read OMP_NUM_THREADS when they import torch, so it is set while they start

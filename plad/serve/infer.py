@@ -41,6 +41,7 @@ from tqdm import tqdm
 from plad.config import MAX_BEAM_ROWS
 from plad.data.inputs import Item
 from plad.data.pictures import save_comparison, save_npy
+from plad.device import torch_threads
 from plad.domains.base import Domain
 from plad.fsutil import WriteError, atomic_write_text, cause_of
 from plad.model.checkpoint import CheckpointError, load_model
@@ -180,12 +181,8 @@ def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,
                     owner.append(b)
     # one thread: the rewriters run many small tensor operations, which a second thread only slows
     # (the four 2D examples, a busy 2-core machine: 2.2 s of CPU with one thread, 24 s with two)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:   # the whole batch at once: the rewriters batch every candidate of every shape
+    with torch_threads(1):   # the whole batch at once: the rewriters batch every candidate of every shape
         refined = rewrite(domain, starts, targets[owner], how.config)
-    finally:
-        torch.set_num_threads(threads)
     programs, values = refined.programs[:len(targets)], refined.values[:len(targets)].clone()
     better = domain.metric.better
     for k in range(len(targets), len(starts)):
