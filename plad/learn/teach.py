@@ -61,8 +61,9 @@ class TeachConfig:
     """Params ``teach.<domain>`` (stage ``teach@<domain>``)."""
 
     domain: str = field(kw_only=True)
-    #: where training starts: "pretrained" (the domain's shipped SP network), "shipped" (its shipped network)
-    #: or the path of a checkpoint
+    #: where training starts: "pretrained" (the domain's shipped SP network), "search_seeded" (the domain's
+    #: search-seeded LEST+ST+WS network, kept as ``plad/shipped/<domain>/search_seeded.pt``) or the path of a
+    #: checkpoint. Never the shipped model: shipping this stage's own network would change its start
     init: str = "pretrained"
     device: str = "auto"
     #: arithmetic of the training forward passes (:mod:`plad.device`); decoding stays float32
@@ -168,9 +169,11 @@ def _write_history(path: Path, rows: list[dict]) -> None:
 
 def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int) -> dict:
     """What identifies a teaching run's work, so that a last.pt of other work is not resumed (fit starts over):
-    the labels, the start, how many labels, the config but for its safety net, device, threads and epochs."""
+    the labels, the start (its network's digest: not the name ``init`` gave it), how many labels, the config but
+    for its safety net, device, threads and epochs."""
     fingerprint = {"labels": labels_sha256, "init": init_digest, "n": n,
-                   "config": {k: v for k, v in asdict(cfg).items() if k not in ("max_minutes", "device", "threads")}}
+                   "config": {k: v for k, v in asdict(cfg).items()
+                              if k not in ("max_minutes", "device", "threads", "init")}}
     fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
     return fingerprint
 

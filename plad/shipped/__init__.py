@@ -584,3 +584,29 @@ def describe_totals(model: ShippedModel) -> str:
     if t.get("gpu_hours"):
         hours += f", {t['gpu_hours']:.1f} GPU h"
     return f"{t.get('epochs', '?')} epochs, {t.get('shapes_seen', 0) / 1e6:.2f} M shapes, {hours}"
+
+
+#: the index of the networks teaching may start from (``teach.<domain>.init: search_seeded``): each domain's
+#: search-seeded LEST+ST+WS network as it was shipped before a taught network replaced it, kept in a file of its
+#: own so that shipping the taught network does not change the start of the stage that made it
+SEARCH_SEEDED_INDEX = "search_seeded.json"
+
+
+def search_seeded_checkpoint(domain: str, folder: Path | None = None) -> Path:
+    """The search-seeded network of ``domain`` that ``teach.<domain>.init: search_seeded`` starts from, verified
+    against the sha256 its index names; ShipError naming the file when it is missing or differs."""
+    folder = Path(folder) if folder is not None else shipped_dir()
+    index_path = folder / SEARCH_SEEDED_INDEX
+    try:
+        entry = json.loads(index_path.read_text())["models"][domain]
+    except FileNotFoundError:
+        raise ShipError(f"{index_path}: missing (the index of the search-seeded networks)") from None
+    except (ValueError, KeyError, TypeError):
+        raise ShipError(f"{index_path}: no search-seeded network of {domain} is indexed") from None
+    path = folder / entry["file"]
+    if not path.is_file():
+        raise ShipError(f"{path}: missing (the search-seeded {domain} network {index_path.name} names)")
+    got = sha256_file(path)
+    if got != entry["sha256"]:
+        raise ShipError(f"{path}: sha256 {got[:12]} differs from {entry['sha256'][:12]} in {index_path.name}")
+    return path

@@ -15,19 +15,20 @@ from plad.stages import StageContext, stage_main
 
 
 def init_checkpoint(cfg: TeachConfig) -> Path:
-    """The checkpoint teaching starts from (``init``): the shipped SP network ("pretrained"), the shipped
-    network ("shipped") or a path."""
+    """The checkpoint teaching starts from (``init``): the shipped SP network ("pretrained"), the search-seeded
+    network ("search_seeded", a file of its own so that shipping the taught network leaves the start as it was)
+    or a path."""
     from plad.config import ConfigError
-    from plad.shipped import pretrained_checkpoint, shipped_model
+    from plad.shipped import pretrained_checkpoint, search_seeded_checkpoint
 
     if cfg.init == "pretrained":
         return pretrained_checkpoint(cfg.domain)
+    if cfg.init == "search_seeded":
+        return search_seeded_checkpoint(cfg.domain)
     if cfg.init == "shipped":
-        model = shipped_model(cfg.domain)
-        if model is None:
-            raise ConfigError(f"teach.{cfg.domain}.init = shipped: no shipped {cfg.domain} model")
-        model.verify()
-        return model.checkpoint
+        raise ConfigError(f"teach.{cfg.domain}.init = shipped: the shipped model may be this stage's own network "
+                          "(`plad models ship`), so its start would change with its result; name "
+                          "'search_seeded', 'pretrained' or a checkpoint's path")
     return Path(cfg.init)
 
 

@@ -330,8 +330,10 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "label":
         return rel([layout.prepared(domain)]), rel([layout.labels(domain), layout.labels_dir / f"{domain}.json"])
     if stage.group == "teach":
-        # the shipped SP network it starts from (init: pretrained)
-        return rel([layout.labels(domain), layout.prepared(domain), Path(f"plad/shipped/{domain}/pretrained.pt")]), \
+        # the networks its init may name: the shipped SP (pretrained) and the kept search-seeded one with its index
+        starts = [Path(f"plad/shipped/{domain}/pretrained.pt"), Path(f"plad/shipped/{domain}/search_seeded.pt"),
+                  Path("plad/shipped/search_seeded.json")]
+        return rel([layout.labels(domain), layout.prepared(domain), *starts]), \
             rel([layout.finetune_dir(domain, "taught"), layout.finetune_summary(domain, "taught")])
     if stage.group in ("evaluate", "evaluate_refined", "evaluate_taught", "evaluate_taught_refined"):
         sweep = stage.sets.get("sweep_beam")

@@ -346,7 +346,7 @@ def test_smoke_repro_writes_the_rows_beyond_the_paper(smoke_run):
 
 def test_smoke_repro_labels_the_training_shapes_and_teaches_a_network(smoke_run):
     """Beyond the paper (issue 58): search labels of the first 12 training shapes of the labelling order, a
-    network taught by them from where params.yaml starts it (the shipped SP or the shipped network), and its
+    network taught by them from where params.yaml starts it (the shipped SP or the search-seeded network), and its
     test evaluation alone and refined."""
     import yaml
 

@@ -145,6 +145,50 @@ def test_a_history_is_continued_only_with_the_run_it_belongs_to(tmp_path, tiny_c
     assert [int(r["unit"]) for r in rows] == [0, 1, 2] and float(rows[0]["val"]) != 123.0
 
 
+def test_the_start_is_its_network_not_the_name_init_gives_it(tmp_path, tiny_checkpoint):
+    """The same network under another name (a path, or "search_seeded") resumes the run; another network does
+    not."""
+    import shutil
+
+    layout = _project(tmp_path)
+    _label(layout)
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    teach(_teach_cfg(init), init, layout, log=lambda line: None)
+    history = layout.finetune_dir("csg2d", "taught") / "history.csv"
+    _mark_start(history)
+    renamed = tmp_path / "elsewhere" / "start.pt"
+    renamed.parent.mkdir()
+    shutil.copyfile(init, renamed)
+    more = {"batch_size": 4, "steps_per_epoch": 2, "max_epochs": 3, "patience": 5}
+    assert teach(_teach_cfg(renamed, train=more), renamed, layout, log=lambda line: None)["units"] == 3
+    assert _start_val(history) == "123.0"
+
+
+def test_teach_starts_from_the_kept_search_seeded_network_never_the_shipped_model(tmp_path):
+    from plad.shipped import ShipError, search_seeded_checkpoint
+    from plad.stages.teach import init_checkpoint
+
+    for domain in ("csg2d", "csg3d", "shapeassembly"):
+        path = init_checkpoint(build(TeachConfig, {"domain": domain, "init": "search_seeded"}, "teach"))
+        assert path == search_seeded_checkpoint(domain) and path.name == "search_seeded.pt"
+    with pytest.raises(ConfigError, match=r"teach\.csg3d\.init = shipped: the shipped model"):
+        init_checkpoint(build(TeachConfig, {"domain": "csg3d", "init": "shipped"}, "teach"))
+    # a damaged or missing copy is named, never trained from
+    folder = tmp_path / "shipped"
+    (folder / "csg3d").mkdir(parents=True)
+    with pytest.raises(ShipError, match="search_seeded.json: missing"):
+        search_seeded_checkpoint("csg3d", folder)
+    index = {"models": {"csg3d": {"file": "csg3d/search_seeded.pt", "sha256": "0" * 64}}}
+    (folder / "search_seeded.json").write_text(json.dumps(index))
+    with pytest.raises(ShipError, match=r"csg3d/search_seeded\.pt: missing"):
+        search_seeded_checkpoint("csg3d", folder)
+    (folder / "csg3d" / "search_seeded.pt").write_bytes(b"not the network")
+    with pytest.raises(ShipError, match="sha256 .* differs from 000000000000"):
+        search_seeded_checkpoint("csg3d", folder)
+    with pytest.raises(ShipError, match="no search-seeded network of csg2d"):
+        search_seeded_checkpoint("csg2d", folder)
+
+
 def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):
     layout = _project(tmp_path)
     init = tiny_checkpoint(tmp_path / "init.pt")
