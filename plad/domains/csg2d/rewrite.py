@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from plad.domains.bits import popcount
+from plad.domains.bits import row_popcount
 from plad.domains.csg2d.executor import pack
 from plad.domains.csg2d.tokens import CANVAS, R_VALUES, XY_VALUES
 from plad.domains.space import Candidates, Node, RewriteSpace, Slot
@@ -85,7 +85,7 @@ def _outside(edges: torch.Tensor, regions: list[torch.Tensor]) -> torch.Tensor:
     """Sum over the edge pixels of the stepped distance to the regions' edges -> float64 (C,)."""
     total = torch.zeros(edges.shape[0], dtype=torch.float64)
     for w, region in zip(_WEIGHTS, regions):
-        total += w * popcount(edges & ~region).sum(1).double()
+        total += w * row_popcount(edges & ~region).double()
     return total
 
 
@@ -220,7 +220,7 @@ class CSG2DRewrite(RewriteSpace):
     def prepare_screen(self, targets: torch.Tensor) -> tuple:
         packed = pack(targets)                                               # (N, 64) int64
         edges = _edges(packed)
-        return edges, _regions(edges), popcount(edges).sum(1)
+        return edges, _regions(edges), row_popcount(edges)
 
     def screen_run(self, cands: Candidates) -> torch.Tensor:
         """Packed canvases (C, 64) int64 of the candidates.
@@ -263,7 +263,7 @@ class CSG2DRewrite(RewriteSpace):
             sl = slice(start, start + _SCREEN_CHUNK)
             own = owner[sl]
             edges = _edges(outputs[sl])
-            count = popcount(edges).sum(1)
+            count = row_popcount(edges)
             te, tc = t_edges[own], t_count[own]
             to_target = _outside(edges, [r[own] for r in t_regions]) / (count + 1)
             to_pred = _outside(te, _regions(edges)) / (tc + 1)

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from plad.domains.bits import packed_iou, popcount
+from plad.domains import bits
+from plad.domains.bits import packed_iou, popcount, row_popcount
 from plad.domains.boxes import grow_box, prefix_sums, residual_boxes
 from plad.domains.csg2d.executor import pack as pack2d
 from plad.domains.csg3d.executor import pack as pack3d
@@ -19,6 +20,22 @@ def test_popcount_of_int64_words():
     expected = [bin(w & (2 ** 64 - 1)).count("1") for w in words.tolist()]
     assert popcount(words).tolist() == expected
     assert popcount(torch.tensor([-1, 0, 1, -2 ** 63])).tolist() == [64, 0, 1, 1]
+
+
+def test_numpys_popcount_and_the_tensor_arithmetic_give_the_same_counts(monkeypatch):
+    """The CPU path (numpy's bitwise_count on the words viewed unsigned) and the SWAR path (any device) agree
+    word by word and row by row, on negative words and on strided views."""
+    g = torch.Generator().manual_seed(3)
+    words = torch.randint(-2 ** 63, 2 ** 63 - 1, (300, 64), generator=g, dtype=torch.int64)
+    words[0, :4] = torch.tensor([-1, -2 ** 63, 0, 2 ** 63 - 1])
+    strided = words[::3, 1::2]
+    fast = [popcount(words), row_popcount(words), popcount(strided), row_popcount(strided)]
+    assert fast[1][0].item() == 64 + 1 + 0 + 63 + int(popcount(words[0, 4:]).sum())
+    monkeypatch.setattr(bits, "_BITWISE_COUNT", None)
+    slow = [popcount(words), row_popcount(words), popcount(strided), row_popcount(strided)]
+    for a, b in zip(fast, slow):
+        assert a.dtype == b.dtype == torch.int64 and torch.equal(a, b)
+    assert torch.equal(slow[1], slow[0].sum(1))
 
 
 def test_packed_iou_is_the_iou_metric():

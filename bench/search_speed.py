@@ -1,0 +1,124 @@
+"""Search and network + refinement: the same programs, in how much CPU time, with and without the speedups.
+
+Usage: ``python -m bench.search_speed [csg2d csg3d] [--efforts fast default] [--shapes 20] [--repeats 2]``
+
+For each domain and effort level, on the first N prepared test shapes, one torch thread: search from scratch,
+and refinement of the shipped network's programs (beam 10, each shape's best, decoded once outside the timing),
+run alternately with every speedup of :data:`SPEEDUPS` switched off (the baseline: the path before them) and on,
+``--repeats`` times each, in this one process on the same shapes. Prints the CPU seconds per shape of both (the
+fastest repeat: the machine may be busy), their ratio, and whether the programs and values are identical (they
+must be: a speedup changes no program). Last line: ``ratio <min over rows of baseline/new>``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import torch
+
+from plad.data.files import load_prepared
+from plad.domains import bits, get_domain
+from plad.rewrite import refine, search, search_config
+
+
+@contextlib.contextmanager
+def _scalar_popcount() -> Iterator[None]:
+    """Bit counts in tensor arithmetic (SWAR), as before numpy's hardware popcount."""
+    saved, bits._BITWISE_COUNT = bits._BITWISE_COUNT, None
+    try:
+        yield
+    finally:
+        bits._BITWISE_COUNT = saved
+
+
+#: each speedup by name, with the context that switches it off (the baseline runs with all of them off)
+SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
+    "numpy popcount in the 2D and 3D screens": _scalar_popcount,
+}
+
+
+@contextlib.contextmanager
+def _baseline() -> Iterator[None]:
+    with contextlib.ExitStack() as stack:
+        for off in SPEEDUPS.values():
+            stack.enter_context(off())
+        yield
+
+
+def _timed(run: Callable[[], object]) -> tuple[float, object]:
+    start = time.process_time()
+    out = run()
+    return time.process_time() - start, out
+
+
+def _same(a, b) -> bool:
+    return a.programs == b.programs and torch.equal(a.values, b.values)
+
+
+def compare(run: Callable[[], object], repeats: int) -> tuple[float, float, bool]:
+    """(baseline CPU seconds, new CPU seconds, identical): ``run`` (a search or refinement returning a
+    ``Result``) with every speedup off and on, alternately ``repeats`` times; the fastest repeat of each."""
+    base_s, new_s, identical = [], [], True
+    for _ in range(repeats):
+        with _baseline():
+            seconds, before = _timed(run)
+        base_s.append(seconds)
+        seconds, after = _timed(run)
+        new_s.append(seconds)
+        identical &= _same(before, after)
+    return min(base_s), min(new_s), identical
+
+
+def _network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
+    """The shipped network's best-of-beam program per shape (beam 10), or None without a shipped network."""
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_programs
+    from plad.shipped import shipped_model
+
+    shipped = shipped_model(domain.name)
+    if shipped is None:
+        return None
+    model, _ = load_model(shipped.checkpoint, expect_domain=domain.name)
+    return [list(p) for p in infer_programs(model, domain, targets, beam=10).programs]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("domains", nargs="*", default=["csg2d", "csg3d"])
+    parser.add_argument("--efforts", nargs="+", default=["fast", "default"])
+    parser.add_argument("--shapes", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--prepared", default="data/prepared")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    print("speedups (off in the baseline): " + "; ".join(SPEEDUPS))
+
+    worst = float("inf")
+    for name in args.domains:
+        domain = get_domain(name)
+        path = Path(args.prepared) / f"{name}.npz"
+        if not path.is_file():
+            raise SystemExit(f"{path}: no such prepared dataset (run the prepare stages first)")
+        targets = torch.from_numpy(load_prepared(path, "test")[: args.shapes])
+        search(domain, targets[:2], search_config(domain, effort="fast"))          # warm-up (lookup tables)
+        starts = _network_programs(domain, targets)
+        for effort in args.efforts:
+            cfg = search_config(domain, effort=effort)
+            paths = {"search": functools.partial(search, domain, targets, cfg)}
+            if starts is not None:
+                paths["network + refinement"] = functools.partial(refine, domain, starts, targets, cfg.refine)
+            for label, run in paths.items():
+                base, new, identical = compare(run, args.repeats)
+                base, new = base / len(targets), new / len(targets)
+                worst = min(worst, base / new)
+                print(f"{name} {effort:8s} {label:21s} baseline {base:.3f} s/shape, new {new:.3f} s/shape: "
+                      f"ratio {base / new:.2f}, identical programs and values: {identical}")
+    print(f"ratio {worst:.2f}")
+
+
+if __name__ == "__main__":
+    main()
