@@ -17,6 +17,7 @@ import fcntl
 import os
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -149,6 +150,26 @@ def atomic_write_text(path: str | os.PathLike, text: str, mode: int = 0o644) -> 
     bytes of a file name (Python's surrogate escapes, as ``os.fsdecode`` gives them): they are written
     back as those bytes, as the file system spells the name, never an error."""
     return atomic_write(path, lambda fh: fh.write(text.encode("utf-8", "surrogateescape")), mode)
+
+
+#: the time stamp of every member of the archives :func:`savez` writes (the zip format's earliest)
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+def savez(file: BinaryIO, **arrays) -> None:
+    """``numpy.savez_compressed`` with the same bytes for the same arrays under every numpy the project allows:
+    numpy 1.x stamped each member with the time of writing, so a rebuilt output (a prepared dataset, labels)
+    differed from the one DVC recorded and every stage after it counted as changed (numpy 2.4 writes these very
+    bytes). Read back with ``numpy.load`` as before."""
+    import numpy as np
+
+    with zipfile.ZipFile(file, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o600 << 16
+            with zf.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=True)   # as numpy.savez
 
 
 def sha256_file(path: str | os.PathLike) -> str:

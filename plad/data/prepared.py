@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from plad.data.errors import DataError
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import atomic_write, atomic_write_text, savez
 
 # --------------------------------------------------------------------------- target sources
 SPLITS = ("train", "val", "test")
@@ -75,7 +75,7 @@ def write_prepared(name: str, shape: tuple[int, ...], splits: dict[str, np.ndarr
         **{f"{s}_occupancy": round(float(x.mean()), 6) if len(x) else 0.0 for s, x in splits.items()},
         **(extra or {}),
     }
-    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write(Path(path), lambda fh: savez(fh, **arrays))
     atomic_write_text(Path(summary_path), json.dumps(summary, indent=2) + "\n")
     return summary
 

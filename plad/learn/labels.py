@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from plad.config import ConfigError
-from plad.fsutil import atomic_write, atomic_write_text, sha256_file
+from plad.fsutil import atomic_write, atomic_write_text, savez, sha256_file
 
 #: the largest difference between a label's stored value and its re-executed one that counts as equal
 RESCORE_TOLERANCE = 1e-9
@@ -186,7 +186,7 @@ def label_shapes(cfg: LabelConfig, prepared: Path, out_root: Path, log=print) ->
     }
     summary["provenance"] = stamp(cfg, started)
     buf = io.BytesIO()
-    np.savez_compressed(buf, index=np.asarray(index, dtype=np.int64), programs=pad_programs(programs, width),
+    savez(buf, index=np.asarray(index, dtype=np.int64), programs=pad_programs(programs, width),
                         values=values.astype(np.float64),
                         executions=np.packbits(executions.reshape(len(programs), -1), axis=1),
                         domain=np.asarray(cfg.domain), split=np.asarray(cfg.split))

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.fsutil import atomic_write
+from plad.fsutil import atomic_write, savez
 from plad.metrics import Metric
 
 MODES = ("all-time", "per-round")
@@ -100,7 +100,7 @@ class PBest:
     # ---- persistence -------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         buf = io.BytesIO()
-        np.savez_compressed(buf, programs=self.programs, values=self.values,
+        savez(buf, programs=self.programs, values=self.values,
                             executions=np.packbits(self.executions.reshape(len(self), -1), axis=1),
                             shape=np.asarray(self.executions.shape[1:]), mode=np.asarray(self.mode),
                             refined=self.refined)

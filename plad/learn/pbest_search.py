@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from plad.config import ConfigError
-from plad.fsutil import atomic_write
+from plad.fsutil import atomic_write, savez
 from plad.learn import distributed as dist
 from plad.learn.methods import PBestSearchConfig
 from plad.learn.pbest import PBest
@@ -150,7 +150,7 @@ class PBestSearch:
             starts = [pbest.program(int(i)) for i in index]
             if dist.is_main():
                 buf = io.BytesIO()
-                np.savez_compressed(buf, index=index, programs=pad_programs(starts, pbest.programs.shape[1]))
+                savez(buf, index=index, programs=pad_programs(starts, pbest.programs.shape[1]))
                 atomic_write(plan_file, lambda fh: fh.write(buf.getvalue()))
         chunks = [Chunk(index[c], shapes[index[c]], [starts[j] for j in c]) for c in split(len(index), self.cfg.chunk)]
         return self._step(folder, "refine", chunks, self.cfg.rewrite_config, self.cfg.rewrite_minutes, pbest,

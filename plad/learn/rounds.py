@@ -51,7 +51,7 @@ import torch
 
 from plad.device import FP32, Precision
 from plad.domains.base import Domain
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import atomic_write, atomic_write_text, savez
 from plad.layout import BEST, LAST, STATE
 from plad.learn import distributed as dist
 from plad.learn.job import Job
@@ -163,7 +163,7 @@ def wake_sleep_samples(model: PLADNet, domain: Domain, pbest: PBest, cfg: WSConf
     programs, executions, sample_stats = sample_dataset(gen, domain, n, cfg, seed=seed)
     stats.update(sample_stats)
     buf = io.BytesIO()
-    np.savez_compressed(buf, programs=programs, stats=np.asarray(json.dumps(stats)),
+    savez(buf, programs=programs, stats=np.asarray(json.dumps(stats)),
                         executions=np.packbits(executions.reshape(len(executions), -1), axis=1))
     atomic_write(samples, lambda fh: fh.write(buf.getvalue()))
     dist.broadcast(buf.getvalue())

@@ -112,13 +112,13 @@ class Library:
 
     def save(self, path: str | Path, domain) -> None:
         """Write the programs (their executions are recomputed on loading), atomically."""
-        from plad.fsutil import atomic_write
+        from plad.fsutil import atomic_write, savez
 
         width = max((len(p) for p in self.programs), default=1)
         tokens = np.full((len(self), width), -1, dtype=np.int16)
         for i, p in enumerate(self.programs):
             tokens[i, :len(p)] = p
-        atomic_write(Path(path), lambda fh: np.savez_compressed(fh, tokens=tokens, domain=np.array(domain.name)))
+        atomic_write(Path(path), lambda fh: savez(fh, tokens=tokens, domain=np.array(domain.name)))
 
     @staticmethod
     def load(path: str | Path, domain) -> Library:

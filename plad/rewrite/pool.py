@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from plad.fsutil import atomic_write
+from plad.fsutil import atomic_write, savez
 
 #: what a chunk does: search from scratch, or refine given programs
 KINDS = ("search", "refine")
@@ -160,7 +160,7 @@ def unpad_programs(rows: np.ndarray) -> list[list[int]]:
 
 def write_chunk(path: Path, r: ChunkResult, width: int) -> None:
     buf = io.BytesIO()
-    np.savez_compressed(buf, index=r.index, programs=pad_programs(r.programs, width), values=r.values, before=r.before,
+    savez(buf, index=r.index, programs=pad_programs(r.programs, width), values=r.values, before=r.before,
                         executions=np.packbits(r.executions.reshape(len(r.index), -1), axis=1),
                         seconds=np.asarray(r.seconds), stopped_by_time=np.asarray(r.stopped_by_time))
     atomic_write(path, lambda fh: fh.write(buf.getvalue()))

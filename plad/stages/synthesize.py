@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import atomic_write, atomic_write_text, savez
 from plad.layout import Layout
 from plad.stages import stage_main
 
@@ -72,7 +72,7 @@ def synthesize(cfg: SynthesizeConfig, layout: Layout = Layout(), chunk: int = 10
     if domain.complexity_kind is not None:
         for split in ("val", "train"):
             arrays[f"{split}_complexity"] = domain.complexity(arrays[split]).astype(np.int16)
-    atomic_write(layout.synthetic(cfg.domain), lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write(layout.synthetic(cfg.domain), lambda fh: savez(fh, **arrays))
     lengths = (arrays["train"] >= 0).sum(1)
     summary = {"domain": cfg.domain, "sampler": cfg.sampler, "seed": cfg.seed, "train": int(len(arrays["train"])),
                "val": int(len(arrays["val"])),

@@ -47,3 +47,28 @@ def test_without_a_lock_file_to_open_the_block_runs_unlocked(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with file_lock(tmp_path / "no" / "such" / "folder.lock") as held:
         assert held is False
+
+
+def test_savez_writes_the_same_bytes_whatever_the_clock(monkeypatch):
+    """A rebuilt output must have the bytes DVC recorded, whatever the clock and the numpy version (numpy 1.x
+    stamped each member with the time of writing); numpy.load reads it back."""
+    import io
+    import time
+
+    import numpy as np
+
+    from plad.fsutil import savez
+
+    arrays = {"train": np.packbits(np.eye(9, dtype=bool), axis=1), "shape": np.asarray([3, 3]),
+              "name": np.asarray("csg2d")}
+
+    def written(write, clock):
+        monkeypatch.setattr(time, "time", lambda: clock)
+        buf = io.BytesIO()
+        write(buf, **arrays)
+        return buf.getvalue()
+
+    assert written(savez, 1.0e9) == written(savez, 1.7e9)
+    with np.load(io.BytesIO(written(savez, 1.0e9))) as z:
+        assert sorted(z.files) == ["name", "shape", "train"]
+        assert all(np.array_equal(z[k], v) for k, v in arrays.items())

@@ -43,7 +43,7 @@ from plad.data.datasets.partnet.source import CATEGORIES, FOLDER, SOURCE_NAME, S
 from plad.data.datasets.partnet.voxels import RES, normalization, voxelize
 from plad.data.files import SPLITS, DataError, PreparedTargets, TargetSource, resolve_data_dir, verify_file
 from plad.domains.grammar import ProgramError
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.fsutil import atomic_write, atomic_write_text, savez
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ def build_partnet_dataset(tar_path: str | os.PathLike, out_path: str | os.PathLi
         assignment = kept
     arrays, failures = execute_records(programs, assignment)
     out_path = Path(out_path)
-    atomic_write(out_path, lambda fh: np.savez_compressed(fh, **arrays))
+    atomic_write(out_path, lambda fh: savez(fh, **arrays))
     for name, reason in failures:
         log.warning("PartNet dataset: %s failed: %s", name, reason)
     counts = {s: {c: int(((arrays["split"] == s) & (arrays["categories"] == c)).sum()) for c in CATEGORIES}
