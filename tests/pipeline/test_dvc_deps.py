@@ -9,7 +9,9 @@ every domain of ``domains``) with that module's closure. dvc.yaml folds the
 closure: a stage may depend on a whole package of :data:`FOLDED` (an edit
 anywhere in it then reruns the stage, though the stage imports only part of
 it); any other code dependency, a file or a folder, must be code the stage
-runs (editing ``plad/eval/report.py`` must not rerun pretraining).
+runs (editing ``plad/eval/report.py`` must not rerun pretraining). Params are
+tracked key by key: editing one fine-tuning method's entry makes that
+method's stages stale and no other, as DVC itself finds them.
 """
 from __future__ import annotations
 
@@ -303,8 +305,65 @@ def test_every_stage_depends_on_the_params_it_reads_and_on_no_key_it_overrides()
         assert stage.params.get(profile_file) == [], f"{stage.name} must depend on the whole {profile_file}"
         if stage.group == "finetune":   # editing one method reruns only its stages
             others = [k for k in raw["finetune"]["base"]["methods"] if k != stage.sets["key"]]
-            assert not any(covers(d.replace(".", "/"), f"finetune/base/methods/{m}")
-                           for d in declared for m in others), f"{stage.name} depends on the entries of other methods"
+            assert not any(covers(d.replace(".", "/"), f"finetune/{block}/methods/{m}")
+                           for d in declared for m in others for block in ("base", domain)), \
+                f"{stage.name} depends on the entries of other methods"
+
+
+# -- params tracked key by key: what an edit makes stale, as DVC finds it ----------------------------------------
+@pytest.fixture(scope="module")
+def stale_after(tmp_path_factory):
+    """``stale_after(edit)``: the stages whose params DVC finds changed once params.yaml is edited by ``edit`` (a
+    function of its parsed mapping). The pipeline's definition (dvc.yaml, params.yaml, the profiles) is copied into
+    a fresh DVC repository, where each stage's params are recorded as a run records them in dvc.lock."""
+    from dvc.dependency.param import MissingParamsError
+    from dvc.repo import Repo
+
+    root = tmp_path_factory.mktemp("pipeline")
+    for name in ("dvc.yaml", "params.yaml"):
+        shutil.copy(REPO / name, root / name)
+    shutil.copytree(REPO / "profiles", root / "profiles")
+    Repo.init(str(root), no_scm=True).close()
+    with Repo(str(root)) as repo:
+        probed = list(repo.index.stages)
+        for st in probed:
+            for dep in st.params:
+                try:
+                    dep.save()
+                except MissingParamsError as err:
+                    pytest.fail(f"{st.name}: {err} Every block of finetune sets the keys dvc.yaml tracks, "
+                                f"its `methods` an entry for every method ({{}} where it keeps base's)")
+        original = (root / "params.yaml").read_text()
+
+        def stale(edit) -> set[str]:
+            data = yaml.safe_load(original)
+            edit(data)
+            (root / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+            try:
+                return {st.name for st in probed if any(dep.workspace_status() for dep in st.params)}
+            finally:
+                (root / "params.yaml").write_text(original)
+
+        yield stale
+
+
+def more_rounds(block: str, method: str):
+    """An edit of params.yaml: one more round for ``method`` in ``finetune.<block>`` (its first, if it sets none)."""
+    def edit(data):
+        entry = data["finetune"][block]["methods"][method]
+        entry["max_rounds"] = (entry.get("max_rounds") or 0) + 1
+    return edit
+
+
+def test_editing_one_methods_rounds_makes_only_its_stages_stale(stale_after):
+    """Every method's entry of finetune.base, and in each domain's block one method's (each check reads params.yaml
+    once per stage, so not all of them: every domain block sets every entry, or the fixture fails)."""
+    p = params()
+    assert stale_after(lambda data: None) == set()
+    for method in p["methods"]:
+        assert stale_after(more_rounds("base", method)) == {f"finetune@{d}-{method}" for d in p["domains"]}, method
+    for domain, method in zip(p["domains"], p["methods"]):   # rl, whose entries are {}, then methods with rounds
+        assert stale_after(more_rounds(domain, method)) == {f"finetune@{domain}-{method}"}, (domain, method)
 
 
 # -- the layout ----------------------------------------------------------------------------------------
