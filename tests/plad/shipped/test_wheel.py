@@ -112,6 +112,7 @@ def test_the_wheel_holds_every_data_file_of_the_package(installed):
     assert {"plad/shipped/pretrained.json", "plad/domains/csg2d/graft_library.npz"} <= wanted
     assert {f"plad/shipped/{d}/{f}" for d in DOMAINS for f in ("model.pt", "model.json", "pretrained.pt")} <= wanted
     assert sorted(wanted - packed) == []
+    assert [n for n in packed if n.startswith("plad/tools/")] == []   # the maintainers' tools stay in the checkout
 
 
 def test_the_installed_package_lists_six_networks_and_infers_in_every_domain(installed):
