@@ -212,8 +212,8 @@ def infer_items(model: PLADNet | None, domain: Domain, items: list[Item], beam: 
     batch every candidate of every shape: the four 2D examples took 2.7 s of CPU so, 4.0 s one at a time);
     each result's ``seconds`` is its share of its batch's time.
 
-    ``search`` (a :class:`plad.rewrite.SearchConfig`; the route :mod:`plad.serve.route` measured better for
-    the domain): the programs come from search from scratch instead, no network (``model`` may be None).
+    ``search`` (a :class:`plad.rewrite.SearchConfig`; the route recorded for the domain, :mod:`plad.serve.route`,
+    found better): the programs come from search from scratch instead, no network (``model`` may be None).
     """
     if refine is not None and not isinstance(refine, Refinement):
         refine = Refinement(refine)

@@ -1,4 +1,4 @@
-"""plad infer's route per domain (plad.serve.route): the better path on validation shapes, and search when chosen."""
+"""plad infer's route per domain (plad.serve.route): the recorded route for its network, and search when chosen."""
 from __future__ import annotations
 
 import json
@@ -7,24 +7,15 @@ import shutil
 import numpy as np
 import pytest
 
-from plad.serve.route import choose, read_routes, route_for
+from plad.serve.route import read_routes, route_for
 
-POINTS = [{"kind": "search", "config": "default", "mean": 0.88, "s_per_shape": 0.24},
-          {"kind": "network", "config": "beam 10", "mean": 0.40, "s_per_shape": 0.05},
-          {"kind": "network + refinement", "config": "default", "mean": 0.85, "s_per_shape": 0.77}]
-
-
-def test_the_route_is_the_path_with_the_better_metric():
-    assert choose(POINTS, "default", higher_is_better=True)["route"] == "search"
-    assert choose(POINTS, "default", higher_is_better=False)["route"] == "network"   # Chamfer: lower is better
-    tie = [dict(p, mean=0.5) for p in POINTS]
-    assert choose(tie, "default", higher_is_better=True)["route"] == "search"         # a tie: the faster
-    entry = choose(POINTS, "default", True)
-    assert entry["network"] == {"mean": 0.85, "s_per_shape": 0.77} and entry["effort"] == "default"
+#: a route as plad.tools.route records it: search measured better
+ENTRY = {"route": "search", "effort": "default", "network": {"mean": 0.85, "s_per_shape": 0.77},
+         "search": {"mean": 0.88, "s_per_shape": 0.24}}
 
 
 def test_a_route_applies_only_to_the_network_it_was_measured_with(tmp_path):
-    entry = {**choose(POINTS, "default", True), "shapes": 50, "model_sha256": "abc"}
+    entry = {**ENTRY, "shapes": 50, "model_sha256": "abc"}
     (tmp_path / "routes.json").write_text(json.dumps({"format": 1, "domains": {"shapeassembly": entry}}))
     route, why = route_for("shapeassembly", "abc", tmp_path)
     assert route == "search" and "50 validation shapes" in why and "0.8800" in why
