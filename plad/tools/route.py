@@ -3,7 +3,7 @@
 The measurement, a maintainer's command (:mod:`plad.serve.route` reads what it records). A user should never
 get the slower-and-worse path. For each domain this measures, on validation shapes (never the test shapes:
 the route is a choice, and choices are made on validation), one thread, CPU seconds per shape, at an effort
-level (:func:`plad.serve.effort.measure`):
+level (:func:`plad.tools.effort.measure`):
 
 * ``network``: the shipped network's beam-10 programs refined as ``plad infer --effort LEVEL`` refines them;
 * ``search``: search from scratch at the level, as ``plad search --effort LEVEL``.
@@ -27,7 +27,7 @@ from plad.serve.route import read_routes, routes_file
 
 
 def choose(points: list[dict], effort: str, higher_is_better: bool) -> dict:
-    """The route from :func:`plad.serve.effort.measure`'s points at ``effort``."""
+    """The route from :func:`plad.tools.effort.measure`'s points at ``effort``."""
     net = next(p for p in points if p["kind"] == "network + refinement" and p["config"] == effort)
     srch = next(p for p in points if p["kind"] == "search" and p["config"] == effort)
     sign = 1.0 if higher_is_better else -1.0
@@ -46,8 +46,8 @@ def measure_route(domain_name: str, targets, effort: str = "default", folder: Pa
 
     from plad.domains import get_domain
     from plad.model.checkpoint import load_model
-    from plad.serve.effort import measure
     from plad.shipped import shipped_model
+    from plad.tools.effort import measure
 
     shipped = shipped_model(domain_name, folder)
     if shipped is None:

@@ -11,9 +11,9 @@ does not inflate it):
 
 ::
 
-    python -m plad.serve.effort measure DOMAIN [--spaced 50] [--prepared data/prepared] [--model PATH]
+    python -m plad.tools.effort measure DOMAIN [--spaced 50] [--prepared data/prepared] [--model PATH]
         --out results/effort/DOMAIN.json
-    python -m plad.serve.effort plot results/effort/*.json -o results/effort.png
+    python -m plad.tools.effort plot results/effort/*.json -o results/effort.png
 
 ``--model``: a checkpoint; default, the model ``plad infer`` would use (the shipped one where no MLflow
 store is configured). Every value is the domain metric of the executed program.
@@ -138,7 +138,7 @@ def plot(files: list[Path], out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m plad.serve.effort", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m plad.tools.effort", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     m = sub.add_parser("measure", help="measure one domain's curve")
     m.add_argument("domain")

@@ -1,4 +1,4 @@
-"""The effort curve (plad.serve.effort): search and network + refinement points of every level, and its picture."""
+"""The effort curve (plad.tools.effort): search and network + refinement points of every level, and its picture."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ from plad.data.files import write_prepared
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.rewrite import search, search_config
-from plad.serve.effort import main, measure, plot
+from plad.tools.effort import main, measure, plot
 from tests.tiny import tiny_model
 
 
