@@ -1,10 +1,10 @@
-"""plad.serve.heldout: the held-out slice is the training shapes the labels left out, evenly spaced."""
+"""plad.tools.heldout: the held-out slice is the training shapes the labels left out, evenly spaced."""
 from __future__ import annotations
 
 import numpy as np
 
 from plad.learn.labels import order
-from plad.serve.heldout import held_out_index
+from plad.tools.heldout import held_out_index
 
 
 def test_the_held_out_shapes_are_the_ones_the_labels_left_out_evenly_spaced():
