@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from plad.eval.pretraining import curve, main
+from plad.tools.pretraining_hours import curve, main
 
 
 def write(path, rows):

@@ -4,7 +4,7 @@ Reads pretraining histories (``runs/pretrain/<domain>/history.csv``, every segme
 one file; the hours are the epochs' own seconds summed, so the time of validation is counted and idle time
 between segments is not) and draws one curve per run, one panel per domain::
 
-    python -m plad.eval.pretraining -o docs/pretraining-hours.png \\
+    python -m plad.tools.pretraining_hours -o docs/pretraining-hours.png \\
         "LABEL=runs/pretrain/DOMAIN/history.csv" ...
 
 The hours are those of the process: with one thread each, CPU hours; a segment that ran on a GPU counts its
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{label}: {len(values)} epochs, {c['hours'][-1]:.2f} h{seen}; best {args.metric} {values[best]:.4f} "
                   f"at epoch {c['epoch'][best]:.0f} ({c['hours'][best]:.2f} h)")
     except ValueError as err:
-        print(f"plad.eval.pretraining: error: {err}", file=sys.stderr)
+        print(f"plad.tools.pretraining_hours: error: {err}", file=sys.stderr)
         return 1
     return 0
 
