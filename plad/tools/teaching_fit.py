@@ -6,7 +6,7 @@ greedy, ``fit_wide``: beam 10) and on the validation shapes (``val``) against th
 (their own seconds summed: training and measuring, one thread), one panel per domain, with the labels' own
 metric on the fit sample (the ceiling, from the run's ``summary.json``) as a dotted line::
 
-    python -m plad.eval.teaching -o docs/teaching-fit.png runs/finetune/*/taught/history.csv
+    python -m plad.tools.teaching_fit -o docs/teaching-fit.png runs/finetune/*/taught/history.csv
 """
 from __future__ import annotations
 

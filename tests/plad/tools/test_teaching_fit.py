@@ -1,0 +1,23 @@
+"""The fit of a taught network beside its validation against hours of teaching (plad.tools.teaching_fit)."""
+from __future__ import annotations
+
+import json
+
+
+def test_the_teaching_plot_reads_histories_and_draws_one_panel_per_domain(tmp_path):
+    from plad.learn.teach import _write_history
+    from plad.tools.teaching_fit import curve, main
+
+    run = tmp_path / "runs" / "finetune" / "csg3d" / "taught"
+    run.mkdir(parents=True)
+    _write_history(run / "history.csv", [
+        {"unit": 0, "val": 0.3, "fit": 0.31, "fit_wide": 0.4, "unit_seconds": 36.0},
+        {"unit": 1, "val": 0.4, "train_loss": 1.5, "fit": 0.5, "fit_wide": 0.6, "unit_seconds": 3600.0}])
+    (run / "summary.json").write_text(json.dumps({"domain": "csg3d", "metric": "iou", "fit_labels_mean": 0.9}))
+    c = curve(run / "history.csv")
+    assert c["hours"] == [0.01, 1.01] and c["fit"] == [0.31, 0.5] and c["val"] == [0.3, 0.4]
+    out = tmp_path / "fit.png"
+    assert main([str(run / "history.csv"), "-o", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    assert main([str(tmp_path / "bad.csv"), "-o", str(tmp_path / "x.png")]) == 1
