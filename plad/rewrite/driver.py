@@ -66,7 +66,7 @@ class RefineConfig:
     graft: int = 0
     #: sub-expressions grafted besides the batch's own: "shipped" (the domain's own library, package data of its
     #: plugin: sub-expressions of programs found for training shapes), a library file (``python -m
-    #: plad.rewrite.graft_library``), or null (the batch's only: what grafting finds then grows with the batch)
+    #: plad.tools.graft_library``), or null (the batch's only: what grafting finds then grows with the batch)
     graft_library: str | None = None
     #: try one swap per round after the insertion (:mod:`plad.rewrite.swap`: remove a primitive, insert the
     #: best new one, tune it by ``tune_sweeps``); what helps where the length cap stops insertion

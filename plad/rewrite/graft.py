@@ -195,7 +195,7 @@ def library_path(domain, name: str) -> Path:
         path = shipped_library(domain)
         if not path.is_file():
             raise ValueError(f"graft_library = shipped: {domain.name} ships no grafting library ({path}); build one "
-                             f"with python -m plad.rewrite.graft_library {domain.name}")
+                             f"with python -m plad.tools.graft_library {domain.name}")
         return path
     path = Path(name)
     if not path.is_file():

@@ -1,7 +1,7 @@
 """Build a grafting library (:mod:`plad.rewrite.graft`): search programs for evenly spaced training shapes and
 keep every sub-expression, one per distinct execution, as SIRI's cache of P_BEST's sub-expressions.
 
-``python -m plad.rewrite.graft_library DOMAIN --prepared data/prepared`` writes the domain's own library
+``python -m plad.tools.graft_library DOMAIN --prepared data/prepared`` writes the domain's own library
 (``plad/domains/<domain>/graft_library.npz``, package data), which ``refine.graft_library: shipped`` grafts from.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m plad.rewrite.graft_library DOMAIN``: search programs for evenly spaced training shapes and
+    """``python -m plad.tools.graft_library DOMAIN``: search programs for evenly spaced training shapes and
     write the library of their sub-expressions (default: the domain's own library)."""
     import argparse
     import time
@@ -24,7 +24,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     from plad.rewrite.driver import search, search_config
     from plad.rewrite.graft import shipped_library, sub_expressions
 
-    parser = argparse.ArgumentParser(prog="python -m plad.rewrite.graft_library", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m plad.tools.graft_library", description=main.__doc__)
     parser.add_argument("domain")
     parser.add_argument("--prepared", default="data/prepared", help="folder of the prepared <domain>.npz")
     parser.add_argument("--split", default="train")
