@@ -92,14 +92,3 @@ def test_bad_input_is_one_line(tmp_path, capsys):
         assert main(list(args)) == 2, args
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
-
-
-def test_baseline_names_a_bad_setting_in_one_line(tmp_path, capsys):
-    """``python -m plad.rewrite.baseline`` checks its ``--set`` before it looks for data or starts work."""
-    from plad.rewrite.baseline import main as baseline
-
-    assert baseline(["shapeassembly", "--prepared", str(tmp_path), "--set", "refine.remov=true"]) == 1
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "unknown key(s) remov in 'search.refine'" in err
-    assert baseline(["shapeassembly", "--prepared", str(tmp_path)]) == 1      # good settings, no data
-    assert "no such prepared dataset" in capsys.readouterr().err
