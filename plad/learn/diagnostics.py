@@ -8,17 +8,10 @@ prefix); one that reads the shape pays for the wrong one. The other shape of
 row i is row i+1 (cyclically), so the value is deterministic for a fixed
 batch. Reported per pretraining epoch next to the greedy metric on real
 validation shapes (issue 14: a 3D model with validation loss going down and
-a gap of 0.009 had learnt the programs' statistics, not the shapes).
-
-:func:`kind_gaps` splits the loss and the gap by the kind of the target token (which parts of a program
-the network reads from the shape); ``python -m plad.learn.diagnostics CHECKPOINT`` prints it for the synthetic
-validation programs of the checkpoint's domain (docs/pretraining-probes.md, section 4).
+a gap of 0.009 had learnt the programs' statistics, not the shapes). The gap split by the kind of the target
+token is a maintainer's probe, :mod:`plad.tools.kind_gaps`.
 """
 from __future__ import annotations
-
-import argparse
-import sys
-from collections.abc import Sequence
 
 import torch
 
@@ -44,68 +37,4 @@ def prefix_gap(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, len
     return float(other - own)
 
 
-@torch.no_grad()
-def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
-              kinds: Sequence[str]) -> dict[str, dict[str, float]]:
-    """Per kind of target token (``kinds[token id]``): its share of the tokens, mean nll, accuracy and
-    prefix-swap gap (as :func:`prefix_gap`, the next row's prefix), eval mode (restored after).
-
-    The share-weighted nll is the loss of :meth:`PLADNet.loss`; a kind whose gap is ~0 is predicted from
-    the program so far alone, whatever the shape.
-    """
-    if len(shapes) < 2:
-        raise ValueError("kind_gaps needs at least two shapes")
-    was_training = model.training
-    model.eval()
-    try:
-        prefix = model.encode(shapes)
-        nll, correct, valid = model.token_nll(prefix, programs, lengths)
-        other, _, _ = model.token_nll(prefix.roll(1, dims=0), programs, lengths)
-    finally:
-        model.train(was_training)
-    # the valid tokens only, flattened: (T,) each
-    nll, correct, gap, tokens = nll[valid], correct[valid].float(), other[valid] - nll[valid], programs[valid]
-    names = sorted(set(kinds))
-    group = torch.tensor([names.index(k) for k in kinds], device=programs.device)[tokens]   # (T,) kind index
-    out = {}
-    for i, name in enumerate(names):
-        sel = group == i
-        if sel.any():
-            out[name] = {"share": float(sel.float().mean()), "nll": float(nll[sel].mean()),
-                         "accuracy": float(correct[sel].mean()), "gap": float(gap[sel].mean())}
-    return out
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Print :func:`kind_gaps` of a checkpoint on its domain's synthetic programs."""
-    from plad.domains import get_domain
-    from plad.errors import run_guarded
-    from plad.layout import Layout
-    from plad.learn.synthetic import load_programs, make_batch
-    from plad.model.checkpoint import load_model
-
-    ap = argparse.ArgumentParser(prog="python -m plad.learn.diagnostics", description=main.__doc__)
-    ap.add_argument("checkpoint")
-    ap.add_argument("--split", default="val", choices=("train", "val"))
-    ap.add_argument("--programs", type=int, default=256, help="the first N programs of the split")
-    ap.add_argument("--root", default=".", help="project root holding data/synthetic (default: .)")
-    args = ap.parse_args(argv)
-
-    def run() -> None:
-        model, name = load_model(args.checkpoint)
-        domain = get_domain(name)
-        rows = load_programs(Layout(args.root).synthetic(name))[args.split][: args.programs]
-        shapes, programs, lengths = make_batch(domain, rows, torch.device("cpu"))
-        table = kind_gaps(model, shapes.float(), programs, lengths, [t.kind for t in domain.tokens.tokens])
-        print(f"{'kind':12s} {'share':>6s} {'nll':>6s} {'acc':>6s} {'gap':>6s}")
-        for kind, r in sorted(table.items(), key=lambda kv: -kv[1]["share"] * kv[1]["nll"]):
-            print(f"{kind:12s} {r['share']:6.3f} {r['nll']:6.3f} {r['accuracy']:6.3f} {r['gap']:6.3f}")
-
-    return run_guarded("python -m plad.learn.diagnostics", run)
-
-
-__all__ = ["kind_gaps", "prefix_gap"]
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["prefix_gap"]

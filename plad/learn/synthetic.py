@@ -4,7 +4,7 @@ file, and batches whose shapes are executed on the fly: in the training process 
 (:class:`ExecutorPool`; ShapeAssembly's executor is Python, about 2 ms a program, which would keep a GPU waiting
 for every batch).
 
-Used by pretraining (:mod:`plad.learn.pretrain`) and its diagnostics (:mod:`plad.learn.diagnostics`).
+Used by pretraining (:mod:`plad.learn.pretrain`) and its token-kind probe (:mod:`plad.tools.kind_gaps`).
 """
 from __future__ import annotations
 

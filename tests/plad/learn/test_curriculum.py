@@ -11,7 +11,7 @@ from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.learn import distributed as dist
 from plad.learn.curriculum import Curriculum, CurriculumConfig, pool
-from plad.learn.diagnostics import kind_gaps, prefix_gap
+from plad.learn.diagnostics import prefix_gap
 from plad.learn.train import FitSetup, TrainConfig, fit
 from plad.model.network import ModelConfig, PLADNet
 from plad.stages.synthesize import to_array
@@ -185,27 +185,6 @@ def test_the_gap_is_zero_for_a_model_that_ignores_its_input_and_positive_once_it
     # prefix; the same network trained on shuffled (shape, program) pairs learns to ignore its input
     assert gaps[False] > 0.2 and gaps[False] > 10 * abs(untrained), (gaps, untrained)
     assert abs(gaps[True]) < 0.02, gaps
-
-
-def test_kind_gaps_split_the_loss_and_the_gap_by_token_kind():
-    torch.manual_seed(0)
-    shapes, programs, lengths = next(few_shapes_batches(batch_size=64)(100))
-    model = tiny(enc_init="kaiming", prefix_bos=True).eval()
-    kinds = [t.kind for t in CSG2D.tokens.tokens]
-    table = kind_gaps(model, shapes, programs, lengths, kinds)
-    assert set(table) <= set(kinds) and len(table) >= 2
-    assert abs(sum(r["share"] for r in table.values()) - 1) < 1e-9
-    # weighted by share, the kinds give back the loss, the accuracy and the gap of the whole batch
-    with torch.no_grad():
-        loss, acc = model.loss(shapes, programs, lengths)
-    assert abs(sum(r["share"] * r["nll"] for r in table.values()) - float(loss)) < 1e-4
-    assert abs(sum(r["share"] * r["accuracy"] for r in table.values()) - float(acc)) < 1e-4
-    gap = prefix_gap(model, shapes, programs, lengths)
-    assert abs(sum(r["share"] * r["gap"] for r in table.values()) - gap) < 1e-4 and abs(gap) > 1e-4
-    # an input-ignoring network: no kind depends on the shape
-    with torch.no_grad():
-        model.encoder.mlp[-1].weight.zero_()
-    assert all(abs(r["gap"]) < 1e-5 for r in kind_gaps(model, shapes, programs, lengths, kinds).values())
 
 
 # -- the model knobs -------------------------------------------------------------------------------

@@ -1,0 +1,57 @@
+"""The loss and the prefix-swap gap by token kind (plad.tools.kind_gaps): they add up to the batch's, and a
+network that ignores its input has no gap in any kind."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from plad.domains import get_domain
+from plad.domains.base import pad_programs
+from plad.learn.diagnostics import prefix_gap
+from plad.tools.kind_gaps import kind_gaps, main
+from tests.tiny import tiny_model
+
+CSG2D = get_domain("csg2d")
+
+
+def few_shapes_batch(n_programs=6, seed=0, batch_size=64, draw=100):
+    """A batch drawn from a few distinct 1-primitive 2D programs: the program is decided by the shape alone."""
+    from plad.domains.csg2d.sampler import sample_programs
+
+    programs = pad_programs(sample_programs(CSG2D.executor, n_programs, np.random.default_rng(seed),
+                                            max_primitives=1), pad=-1).clamp(min=0)
+    lengths = torch.full((n_programs,), programs.shape[1])
+    i = torch.randint(0, n_programs, (batch_size,), generator=torch.Generator().manual_seed(draw))
+    return CSG2D.execute(programs)[i], programs[i], lengths[i]
+
+
+def test_kind_gaps_split_the_loss_and_the_gap_by_token_kind():
+    shapes, programs, lengths = few_shapes_batch()
+    model = tiny_model("csg2d", 0, enc_init="kaiming", prefix_bos=True, dropout=0.0).eval()
+    kinds = [t.kind for t in CSG2D.tokens.tokens]
+    table = kind_gaps(model, shapes, programs, lengths, kinds)
+    assert set(table) <= set(kinds) and len(table) >= 2
+    assert abs(sum(r["share"] for r in table.values()) - 1) < 1e-9
+    # weighted by share, the kinds give back the loss, the accuracy and the gap of the whole batch
+    with torch.no_grad():
+        loss, acc = model.loss(shapes, programs, lengths)
+    assert abs(sum(r["share"] * r["nll"] for r in table.values()) - float(loss)) < 1e-4
+    assert abs(sum(r["share"] * r["accuracy"] for r in table.values()) - float(acc)) < 1e-4
+    gap = prefix_gap(model, shapes, programs, lengths)
+    assert abs(sum(r["share"] * r["gap"] for r in table.values()) - gap) < 1e-4 and abs(gap) > 1e-4
+    # an input-ignoring network: no kind depends on the shape
+    with torch.no_grad():
+        model.encoder.mlp[-1].weight.zero_()
+    assert all(abs(r["gap"]) < 1e-5 for r in kind_gaps(model, shapes, programs, lengths, kinds).values())
+
+
+def test_the_command_prints_a_row_per_kind_of_a_checkpoint(tmp_path, capsys, tiny_checkpoint):
+    from plad.layout import Layout
+    from plad.stages.synthesize import SynthesizeConfig, synthesize
+
+    synthesize(SynthesizeConfig(domain="csg2d", train_programs=8, val_programs=8), Layout(tmp_path))
+    checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
+    assert main([str(checkpoint), "--programs", "8", "--root", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["kind", "share", "nll", "acc", "gap"] and len(lines) >= 3
+    assert abs(sum(float(line.split()[1]) for line in lines[1:]) - 1) < 0.01
