@@ -8,7 +8,7 @@ real training shapes, as ``search_seeded``, may have seen some of them, and the 
 module takes ``--shapes`` of them, evenly spaced in the labelling order, and scores the shipped network alone
 (beam 10) against the domain's floor (one primitive / one box per shape) on the same shapes.
 
-Usage: ``python -m plad.tools.heldout shapeassembly [--shapes 300] [--out results/heldout/shapeassembly.json]``
+Usage: ``python -m plad.tools.heldout DOMAIN [--shapes 300] [--out results/heldout/DOMAIN.json]``
 """
 from __future__ import annotations
 
