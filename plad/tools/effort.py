@@ -21,7 +21,6 @@ store is configured). Every value is the domain metric of the executed program.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 import time
@@ -30,7 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plad.fsutil import atomic_write, atomic_write_text
+from plad.data.pictures import save_figure
+from plad.fsutil import atomic_write_text
 
 #: beams of the network-only points
 BEAMS = (1, 10)
@@ -131,10 +131,7 @@ def plot(files: list[Path], out: Path) -> None:
         ax.set_title(f"{run['domain']}: {run['shapes']} test shapes")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(out, lambda fh: fh.write(buf.getvalue()))
+    save_figure(fig, out, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> None:

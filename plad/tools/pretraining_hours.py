@@ -21,7 +21,7 @@ import math
 import sys
 from pathlib import Path
 
-from plad.fsutil import atomic_write
+from plad.data.pictures import save_figure
 
 
 def curve(history: Path) -> dict[str, list[float]]:
@@ -113,8 +113,7 @@ def plot(runs: dict[str, Path], out: Path, metric: str = "real_val_iou", x: str 
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    atomic_write(out, lambda fh: fig.savefig(fh, format="png", dpi=110))
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import io
 import json
 import math
 import sys
 from pathlib import Path
 
-from plad.fsutil import atomic_write
+from plad.data.pictures import save_figure
 
 #: the curves of a history, with their line styles
 CURVES = (("fit", "fit: labelled training shapes, beam 1", "-"),
@@ -84,10 +83,7 @@ def plot(histories: list[Path], output: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(output, lambda fh: fh.write(buf.getvalue()))
+    save_figure(fig, output, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:
