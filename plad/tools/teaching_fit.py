@@ -1,12 +1,15 @@
 """The fit of a taught network beside its validation, against CPU hours of teaching (issue 58).
 
 Reads the histories of teach runs (``runs/finetune/<domain>/taught/history.csv``: one row per epoch, row 0
-the starting network) and draws, per run, the metric on a fixed sample of labelled training shapes (``fit``:
+the starting network; or the committed summary ``results/finetune/<domain>/taught.json``, whose ``history``
+holds the epochs after the start with their cumulative seconds, so the plot survives a lost DVC cache) and
+draws, per run, the metric on a fixed sample of labelled training shapes (``fit``:
 greedy, ``fit_wide``: beam 10) and on the validation shapes (``val``) against the hours of the epochs
 (their own seconds summed: training and measuring, one thread), one panel per domain, with the labels' own
 metric on the fit sample (the ceiling, from the run's ``summary.json``) as a dotted line::
 
     python -m plad.tools.teaching_fit -o docs/teaching-fit.png runs/finetune/*/taught/history.csv
+    python -m plad.tools.teaching_fit -o docs/teaching-fit.png results/finetune/*/taught.json
 """
 from __future__ import annotations
 
@@ -27,6 +30,8 @@ CURVES = (("fit", "fit: labelled training shapes, beam 1", "-"),
 
 def curve(history: Path) -> dict[str, list[float]]:
     """``{"hours", "epoch", "fit", "fit_wide", "val"}`` of one teach history (a missing value: NaN)."""
+    if history.suffix == ".json":
+        return summary_curve(history, read_summary(history))
     try:
         with history.open(newline="") as fh:
             rows = list(csv.DictReader(fh))
@@ -53,6 +58,33 @@ def curve(history: Path) -> dict[str, list[float]]:
     return out
 
 
+def read_summary(path: Path) -> dict:
+    """A teach run's summary json (``ValueError`` naming the file when it cannot be read as one)."""
+    try:
+        summary = json.loads(path.read_text())
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read ({err.strerror})") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not JSON ({err.msg}, line {err.lineno})") from None
+    if not isinstance(summary, dict) or not isinstance(summary.get("history"), list):
+        raise ValueError(f"{path}: not a teach summary (no history list)")
+    return summary
+
+
+def summary_curve(path: Path, summary: dict) -> dict[str, list[float]]:
+    """The curve of a summary's ``history``: epochs 1.. (the start is not in it), ``seconds`` cumulative."""
+    out: dict[str, list[float]] = {"hours": [], "epoch": [], "fit": [], "fit_wide": [], "val": []}
+    for epoch, row in enumerate(summary["history"], start=1):
+        if not isinstance(row, dict) or "val" not in row or "seconds" not in row:
+            raise ValueError(f"{path}: history row {epoch} has no val and seconds")
+        out["hours"].append(float(row["seconds"]) / 3600)
+        out["epoch"].append(float(epoch))
+        for key in ("fit", "fit_wide", "val"):
+            value = row.get(key)
+            out[key].append(math.nan if value is None else float(value))
+    return out
+
+
 def plot(histories: list[Path], output: Path) -> None:
     import matplotlib
 
@@ -61,6 +93,11 @@ def plot(histories: list[Path], output: Path) -> None:
 
     runs = []
     for h in histories:
+        if h.suffix == ".json":         # results/finetune/<domain>/taught.json
+            summary = read_summary(h)
+            domain = summary.get("domain") or h.parent.name
+            runs.append((domain, summary_curve(h, summary), summary))
+            continue
         summary_path = h.parent / "summary.json"
         summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         domain = summary.get("domain") or h.parent.parent.name

@@ -21,3 +21,24 @@ def test_the_teaching_plot_reads_histories_and_draws_one_panel_per_domain(tmp_pa
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
     assert main([str(tmp_path / "bad.csv"), "-o", str(tmp_path / "x.png")]) == 1
+
+
+def test_the_teaching_plot_reads_the_committed_summaries_history(tmp_path):
+    from plad.tools.teaching_fit import curve, main
+
+    folder = tmp_path / "results" / "finetune" / "shapeassembly"
+    folder.mkdir(parents=True)
+    summary = {"domain": "shapeassembly", "metric": "iou", "fit_labels_mean": 0.8, "history": [
+        {"val": 0.25, "train_loss": 2.0, "fit": 0.28, "fit_wide": 0.33, "seconds": 1800.0},
+        {"val": 0.3, "train_loss": 1.9, "fit": 0.35, "seconds": 5400.0}]}
+    (folder / "taught.json").write_text(json.dumps(summary))
+    c = curve(folder / "taught.json")
+    assert c["hours"] == [0.5, 1.5] and c["epoch"] == [1.0, 2.0] and c["val"] == [0.25, 0.3]
+    assert c["fit_wide"][0] == 0.33 and c["fit_wide"][1] != c["fit_wide"][1]     # missing: NaN
+    out = tmp_path / "fit.png"
+    assert main([str(folder / "taught.json"), "-o", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "other.json").write_text(json.dumps({"domain": "csg2d"}))
+    assert main([str(tmp_path / "other.json"), "-o", str(tmp_path / "x.png")]) == 1
+    (tmp_path / "broken.json").write_text("{")
+    assert main([str(tmp_path / "broken.json"), "-o", str(tmp_path / "y.png")]) == 1
