@@ -55,3 +55,26 @@ def test_the_command_prints_a_row_per_kind_of_a_checkpoint(tmp_path, capsys, tin
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["kind", "share", "nll", "acc", "gap"] and len(lines) >= 3
     assert abs(sum(float(line.split()[1]) for line in lines[1:]) - 1) < 0.01
+
+
+def test_the_labels_batch_pairs_each_real_shape_with_its_label_and_the_command_reads_it(tmp_path, capsys,
+                                                                                         tiny_checkpoint):
+    from plad.data.files import load_prepared
+    from plad.learn.labels import load_labels
+    from plad.tools.kind_gaps import labelled_batch
+    from tests.plad.learn.test_labels_teach import _label, _project
+
+    layout = _project(tmp_path)
+    _label(layout)
+    labels = load_labels(layout.labels("csg2d"))
+    shapes, programs, lengths = labelled_batch(CSG2D, layout, 3)
+    # evenly spaced over the 9 labels: 0, 4, 8 (the teach stage's fit sample), each with its own real shape
+    pick = [0, 4, 8]
+    real = load_prepared(layout.prepared("csg2d"), "train")
+    assert torch.equal(shapes, torch.from_numpy(real[labels.index[pick]]))
+    assert [programs[i, :lengths[i]].tolist() for i in range(3)] == [labels.programs[i] for i in pick]
+    checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
+    assert main([str(checkpoint), "--labels", "--programs", "3", "--root", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["kind", "share", "nll", "acc", "gap"]
+    assert abs(sum(float(line.split()[1]) for line in lines[1:]) - 1) < 0.01
