@@ -318,17 +318,24 @@ class PLADNet(nn.Module):
     def forward(self, shapes: torch.Tensor, tokens_in: torch.Tensor) -> torch.Tensor:
         return self.forward_prefix(self.encode(shapes), tokens_in)
 
-    def token_nll(self, prefix: torch.Tensor, programs: torch.Tensor,
-                  lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Teacher-forced (nll, correct, valid), (N, L) each, of programs (N, L) right-padded (any value past
-        ``lengths`` (N,)) after the visual prefix (N, P, d)."""
+    def teacher_forced(self, prefix: torch.Tensor, programs: torch.Tensor,
+                       lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(logits (N, L, V) float32, target (N, L), valid (N, L)) of programs (N, L) right-padded (any value
+        past ``lengths`` (N,)) after the visual prefix (N, P, d), each token predicted from the true ones before it."""
         N, L = programs.shape
         valid = torch.arange(L, device=programs.device)[None, :] < lengths[:, None]
         target = torch.where(valid, programs, torch.zeros_like(programs))
         tokens_in = torch.cat([torch.full((N, 1), self.cfg.bos, device=programs.device, dtype=torch.long),
                                torch.where(valid, programs, torch.full_like(programs, self.cfg.pad))[:, :-1]], 1)
         # float32 logits: under bf16 autocast the cross-entropy still sums in float32 (a no-op in float32)
-        logits = self.forward_prefix(prefix, tokens_in).float()
+        return self.forward_prefix(prefix, tokens_in).float(), target, valid
+
+    def token_nll(self, prefix: torch.Tensor, programs: torch.Tensor,
+                  lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Teacher-forced (nll, correct, valid), (N, L) each, of programs (N, L) right-padded (any value past
+        ``lengths`` (N,)) after the visual prefix (N, P, d)."""
+        logits, target, valid = self.teacher_forced(prefix, programs, lengths)
+        N, L = programs.shape
         nll = F.cross_entropy(logits.reshape(N * L, -1), target.reshape(-1), reduction="none").view(N, L)
         return nll, logits.argmax(-1) == target, valid
 

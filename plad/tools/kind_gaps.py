@@ -17,11 +17,41 @@ import torch
 from plad.model.network import PLADNet
 
 
+def near_matrix(tokens: Sequence) -> torch.Tensor:
+    """(V, V) bool: ``near[a, b]`` when token ``b`` is ``a`` or one grid step from it: the same kind, the same
+    non-numeric parameters, and every numeric parameter at most one place apart in the sorted values that
+    parameter takes over the kind's tokens (a token without parameters is near itself only)."""
+    V = len(tokens)
+    near = torch.eye(V, dtype=torch.bool)
+    by_kind: dict[str, list[int]] = {}
+    for i, t in enumerate(tokens):
+        if t.params:
+            by_kind.setdefault(t.kind, []).append(i)
+    for ids in by_kind.values():
+        params = [tokens[i].params for i in ids]
+        if len({len(p) for p in params}) != 1:
+            continue
+        columns = []                                    # per parameter: (len(ids),) rank or exact value code
+        for k in range(len(params[0])):
+            values = [p[k] for p in params]
+            numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+            ranks = {v: r for r, v in enumerate(sorted(set(values), key=lambda v: (str(type(v)), v)))}
+            columns.append((numeric, torch.tensor([ranks[v] for v in values])))
+        ok = torch.ones(len(ids), len(ids), dtype=torch.bool)
+        for numeric, col in columns:
+            diff = (col[:, None] - col[None, :]).abs()
+            ok &= diff <= 1 if numeric else diff == 0
+        index = torch.tensor(ids)
+        near[index[:, None], index[None, :]] = ok
+    return near
+
+
 @torch.no_grad()
 def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
-              kinds: Sequence[str]) -> dict[str, dict[str, float]]:
+              kinds: Sequence[str], near: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
     """Per kind of target token (``kinds[token id]``): its share of the tokens, mean nll, accuracy and
-    prefix-swap gap (as :func:`plad.learn.diagnostics.prefix_gap`, the next row's prefix), eval mode (restored after).
+    prefix-swap gap (as :func:`plad.learn.diagnostics.prefix_gap`, the next row's prefix), eval mode (restored after);
+    with ``near`` (:func:`near_matrix`), also the accuracy that counts a prediction one grid step off as right.
 
     The share-weighted nll is the loss of :meth:`PLADNet.loss`; a kind whose gap is ~0 is predicted from
     the program so far alone, whatever the shape.
@@ -32,12 +62,16 @@ def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, leng
     model.eval()
     try:
         prefix = model.encode(shapes)
-        nll, correct, valid = model.token_nll(prefix, programs, lengths)
+        logits, target, valid = model.teacher_forced(prefix, programs, lengths)
+        nll = torch.nn.functional.cross_entropy(logits.flatten(0, 1), target.flatten(), reduction="none")
+        nll, predicted = nll.view(target.shape), logits.argmax(-1)
         other, _, _ = model.token_nll(prefix.roll(1, dims=0), programs, lengths)
     finally:
         model.train(was_training)
     # the valid tokens only, flattened: (T,) each
-    nll, correct, gap, tokens = nll[valid], correct[valid].float(), other[valid] - nll[valid], programs[valid]
+    tokens, predicted = programs[valid], predicted[valid]
+    nll, correct, gap = nll[valid], (predicted == tokens).float(), other[valid] - nll[valid]
+    close = near.to(tokens.device)[tokens, predicted].float() if near is not None else None
     names = sorted(set(kinds))
     group = torch.tensor([names.index(k) for k in kinds], device=programs.device)[tokens]   # (T,) kind index
     out = {}
@@ -46,6 +80,8 @@ def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, leng
         if sel.any():
             out[name] = {"share": float(sel.float().mean()), "nll": float(nll[sel].mean()),
                          "accuracy": float(correct[sel].mean()), "gap": float(gap[sel].mean())}
+            if close is not None:
+                out[name]["near"] = float(close[sel].mean())
     return out
 
 
@@ -92,10 +128,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             rows = load_programs(Layout(args.root).synthetic(name))[args.split][: args.programs]
             shapes, programs, lengths = make_batch(domain, rows, torch.device("cpu"))
-        table = kind_gaps(model, shapes.float(), programs, lengths, [t.kind for t in domain.tokens.tokens])
-        print(f"{'kind':12s} {'share':>6s} {'nll':>6s} {'acc':>6s} {'gap':>6s}")
+        tokens = domain.tokens.tokens
+        table = kind_gaps(model, shapes.float(), programs, lengths, [t.kind for t in tokens], near_matrix(tokens))
+        # near: the accuracy that counts a prediction one grid step off as right (numeric parameters)
+        print(f"{'kind':12s} {'share':>6s} {'nll':>6s} {'acc':>6s} {'near':>6s} {'gap':>6s}")
         for kind, r in sorted(table.items(), key=lambda kv: -kv[1]["share"] * kv[1]["nll"]):
-            print(f"{kind:12s} {r['share']:6.3f} {r['nll']:6.3f} {r['accuracy']:6.3f} {r['gap']:6.3f}")
+            print(f"{kind:12s} {r['share']:6.3f} {r['nll']:6.3f} {r['accuracy']:6.3f} {r['near']:6.3f} {r['gap']:6.3f}")
 
     return run_guarded("python -m plad.tools.kind_gaps", run)
 

@@ -8,7 +8,7 @@ import torch
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
 from plad.learn.diagnostics import prefix_gap
-from plad.tools.kind_gaps import kind_gaps, main
+from plad.tools.kind_gaps import kind_gaps, main, near_matrix
 from tests.tiny import tiny_model
 
 CSG2D = get_domain("csg2d")
@@ -53,7 +53,7 @@ def test_the_command_prints_a_row_per_kind_of_a_checkpoint(tmp_path, capsys, tin
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
     assert main([str(checkpoint), "--programs", "8", "--root", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split() == ["kind", "share", "nll", "acc", "gap"] and len(lines) >= 3
+    assert lines[0].split() == ["kind", "share", "nll", "acc", "near", "gap"] and len(lines) >= 3
     assert abs(sum(float(line.split()[1]) for line in lines[1:]) - 1) < 0.01
 
 
@@ -80,5 +80,37 @@ def test_the_labels_batch_pairs_each_real_shape_with_its_label_and_the_command_r
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
     assert main([str(checkpoint), "--labels", "--programs", "3", "--root", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split() == ["kind", "share", "nll", "acc", "gap"]
+    assert lines[0].split() == ["kind", "share", "nll", "acc", "near", "gap"]
     assert abs(sum(float(line.split()[1]) for line in lines[1:]) - 1) < 0.01
+
+
+def test_near_counts_one_grid_step_in_every_numeric_parameter_and_nothing_else():
+    csg3d, shapeassembly = get_domain("csg3d").tokens, get_domain("shapeassembly").tokens
+    near = near_matrix(csg3d.tokens)
+    i = csg3d.index
+    assert near[i("4"), i("3")] and near[i("4"), i("5")] and near[i("4"), i("4")] and not near[i("4"), i("6")]
+    assert not near[i("cuboid"), i("ellipsoid")] and not near[i("union"), i("diff")]
+    assert torch.equal(near, near.T)
+    near = near_matrix(shapeassembly.tokens)
+    j = shapeassembly.index
+    assert near[j("fpos_5_5"), j("fpos_4_6")] and not near[j("fpos_5_5"), j("fpos_5_7")]
+    assert not near[j("fpos_5_5"), j("5")]                          # another kind
+    # 2D: the primitive's type must match, position and size within one step each
+    tokens = CSG2D.tokens.tokens
+    near = near_matrix(tokens)
+    by = {t.params: n for n, t in enumerate(tokens)}
+    c = [p for p in by if p[:1] == ("c",)][0]
+    step = sorted({p[1] for p in by if p[:1] == ("c",)})
+    nxt = ("c", step[step.index(c[1]) + 1], c[2], c[3])
+    assert near[by[c], by[nxt]] and not near[by[c], by[("s", *c[1:])]]
+
+
+def test_near_accuracy_is_at_least_the_accuracy_and_equal_for_kinds_without_numbers():
+    shapes, programs, lengths = few_shapes_batch()
+    model = tiny_model("csg2d", 0, enc_init="kaiming", prefix_bos=True, dropout=0.0).eval()
+    tokens = CSG2D.tokens.tokens
+    table = kind_gaps(model, shapes, programs, lengths, [t.kind for t in tokens], near_matrix(tokens))
+    assert all(r["near"] >= r["accuracy"] for r in table.values())
+    for kind, r in table.items():
+        if not any(t.params and t.kind == kind and isinstance(t.params[-1], int) for t in tokens):
+            assert r["near"] == r["accuracy"]
