@@ -85,8 +85,10 @@ def kind_gaps(model: PLADNet, shapes: torch.Tensor, programs: torch.Tensor, leng
     return out
 
 
-def labelled_batch(domain, layout, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(real shapes (n, *s), label programs (n, L), lengths (n,)) of ``n`` evenly spaced labelled training shapes."""
+def labelled_batch(domain, layout, n: int, first: int = 0,
+                   last: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(real shapes (n, *s), label programs (n, L), lengths (n,)) of ``n`` evenly spaced labelled training shapes,
+    among the labels ``first:last`` of the labelling order (e.g. those a network was taught on, or the others)."""
     import numpy as np
 
     from plad.data.files import evenly_spaced_index, load_prepared
@@ -95,7 +97,13 @@ def labelled_batch(domain, layout, n: int) -> tuple[torch.Tensor, torch.Tensor, 
     from plad.rewrite.pool import pad_programs
 
     labels = load_labels(layout.labels(domain.name))
-    pick = evenly_spaced_index(len(labels), min(n, len(labels)))
+    span = np.arange(len(labels))[first:last]
+    if not len(span):
+        from plad.data.files import DataError
+
+        raise DataError(layout.labels(domain.name),
+                        f"no labels in {first}:{'' if last is None else last} of its {len(labels)}")
+    pick = span[evenly_spaced_index(len(span), min(n, len(span)))]
     real = load_prepared(layout.prepared(domain.name), "train")[labels.index[pick]]
     programs = pad_programs([labels.programs[i] for i in pick], domain.tokens.max_len)
     tokens, lengths = split_padding(torch.from_numpy(np.asarray(programs, dtype=np.int64)))
@@ -118,13 +126,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", action="store_true",
                     help="the search labels of N evenly spaced labelled real training shapes (data/labels, "
                          "data/prepared) instead of synthetic programs")
+    ap.add_argument("--range", default=":", metavar="FIRST:LAST",
+                    help="with --labels, only the labels FIRST:LAST of the labelling order (default: all)")
     args = ap.parse_args(argv)
+    try:
+        first, last = (int(v) if v else None for v in args.range.split(":"))
+    except ValueError:
+        ap.error(f"--range {args.range!r}: expected FIRST:LAST, e.g. 0:3072 or 3072:")
 
     def run() -> None:
         model, name = load_model(args.checkpoint)
         domain = get_domain(name)
         if args.labels:
-            shapes, programs, lengths = labelled_batch(domain, Layout(args.root), args.programs)
+            shapes, programs, lengths = labelled_batch(domain, Layout(args.root), args.programs, first or 0, last)
         else:
             rows = load_programs(Layout(args.root).synthetic(name))[args.split][: args.programs]
             shapes, programs, lengths = make_batch(domain, rows, torch.device("cpu"))

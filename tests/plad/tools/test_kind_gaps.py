@@ -77,7 +77,12 @@ def test_the_labels_batch_pairs_each_real_shape_with_its_label_and_the_command_r
     real = load_prepared(layout.prepared("csg2d"), "train")
     assert torch.equal(shapes, torch.from_numpy(real[labels.index[pick]]))
     assert [programs[i, :lengths[i]].tolist() for i in range(3)] == [labels.programs[i] for i in pick]
+    # a range of the labelling order: evenly spaced among labels 3..8
+    shapes, programs, lengths = labelled_batch(CSG2D, layout, 2, first=3)
+    assert torch.equal(shapes, torch.from_numpy(real[labels.index[[3, 8]]]))
     checkpoint = tiny_checkpoint(tmp_path / "tiny.pt")
+    assert main([str(checkpoint), "--labels", "--range", "20:", "--root", str(tmp_path)]) == 1
+    capsys.readouterr()
     assert main([str(checkpoint), "--labels", "--programs", "3", "--root", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["kind", "share", "nll", "acc", "near", "gap"]
