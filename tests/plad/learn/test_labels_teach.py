@@ -9,37 +9,18 @@ import pytest
 import torch
 
 from plad.config import ConfigError, build
-from plad.data.files import DataError, load_prepared, write_prepared
+from plad.data.files import DataError, load_prepared
 from plad.domains import get_domain
 from plad.domains.base import pad_programs
-from plad.layout import Layout
-from plad.learn.labels import LabelConfig, label_shapes, load_labels, order
+from plad.learn.labels import load_labels, order
 from plad.learn.teach import TeachConfig, teach
-
-#: a cheap search: few insertions, no refinement
-SMALL = {"insertions": 3, "refine": {"rounds": 0}}
-
-
-def _project(root, domain_name: str = "csg2d", n: int = 9) -> Layout:
-    """A layout root whose prepared shapes are executions of sampled programs (n train, 4 val)."""
-    domain = get_domain(domain_name)
-    rng = np.random.default_rng(11)
-    split = {s: domain.execute(pad_programs(domain.sample(k, rng))).numpy() for s, k in (("train", n), ("val", 4))}
-    layout = Layout(root)
-    write_prepared(domain_name, domain.shape, split, layout.prepared(domain_name),
-                   layout.prepared_summary(domain_name))
-    return layout
-
-
-def _label(layout: Layout, **kw):
-    cfg = LabelConfig(domain="csg2d", **{"chunk": 3, "search": SMALL, **kw})
-    return label_shapes(cfg, layout.prepared("csg2d"), layout.labels_dir, log=lambda line: None)
+from tests.labelled import label_project, sampled_project
 
 
 def test_labels_are_exactly_what_their_programs_draw_and_a_killed_run_resumes(tmp_path):
-    layout = _project(tmp_path)
+    layout = sampled_project(tmp_path)
     domain = get_domain("csg2d")
-    summary = _label(layout, limit=5)                   # rounded up to whole chunks: 6 shapes
+    summary = label_project(layout, limit=5)                   # rounded up to whole chunks: 6 shapes
     labels = load_labels(layout.labels("csg2d"))
     assert summary["n"] == len(labels) == 6 and summary["chunks"] == 2 and summary["chunks_resumed"] == 0
     assert np.array_equal(labels.index, order(9)[:6])   # the labelling order's prefix
@@ -54,24 +35,24 @@ def test_labels_are_exactly_what_their_programs_draw_and_a_killed_run_resumes(tm
     # a kill after the first chunk: the run again searches only the other one, with the same labels
     parts = layout.labels_dir / "csg2d.parts"
     (parts / "chunk_00001.npz").unlink()
-    again = _label(layout, limit=5)
+    again = label_project(layout, limit=5)
     assert again["chunks_resumed"] == 1
     assert load_labels(layout.labels("csg2d")).programs == labels.programs
     # a larger limit reuses both chunks and searches the third
-    more = _label(layout, limit=None)
+    more = label_project(layout, limit=None)
     assert more["chunks_resumed"] == 2 and more["n"] == 9
     assert load_labels(layout.labels("csg2d")).programs[:6] == labels.programs
     # other search settings are other work: the chunks are not reused
-    other = _label(layout, limit=5, search={"insertions": 2, "refine": {"rounds": 0}})
+    other = label_project(layout, limit=5, search={"insertions": 2, "refine": {"rounds": 0}})
     assert other["chunks_resumed"] == 0
 
 
 def test_label_config_errors_name_the_key(tmp_path):
-    layout = _project(tmp_path)
+    layout = sampled_project(tmp_path)
     with pytest.raises(ConfigError, match=r"label\.csg2d: workers"):
-        _label(layout, workers=0)
+        label_project(layout, workers=0)
     with pytest.raises(ConfigError, match=r"label\.csg2d\.search"):
-        _label(layout, search={"no_such_key": 1})
+        label_project(layout, search={"no_such_key": 1})
     with pytest.raises(DataError, match="no labels"):
         load_labels(tmp_path / "missing.npz")
     bad = tmp_path / "bad.npz"
@@ -88,8 +69,8 @@ def _teach_cfg(init, **kw) -> TeachConfig:
 
 
 def test_teaching_records_fit_beside_validation_and_resumes(tmp_path, tiny_checkpoint):
-    layout = _project(tmp_path)
-    _label(layout)
+    layout = sampled_project(tmp_path)
+    label_project(layout)
     init = tiny_checkpoint(tmp_path / "init.pt")
     summary = teach(_teach_cfg(init), init, layout, log=lambda line: None)
     out = layout.finetune_dir("csg2d", "taught")
@@ -128,8 +109,8 @@ def _start_val(history) -> str:
 
 
 def test_a_history_is_continued_only_with_the_run_it_belongs_to(tmp_path, tiny_checkpoint):
-    layout = _project(tmp_path)
-    _label(layout)
+    layout = sampled_project(tmp_path)
+    label_project(layout)
     init = tiny_checkpoint(tmp_path / "init.pt")
     teach(_teach_cfg(init), init, layout, log=lambda line: None)
     history = layout.finetune_dir("csg2d", "taught") / "history.csv"
@@ -150,8 +131,8 @@ def test_the_start_is_its_network_not_the_name_init_gives_it(tmp_path, tiny_chec
     not."""
     import shutil
 
-    layout = _project(tmp_path)
-    _label(layout)
+    layout = sampled_project(tmp_path)
+    label_project(layout)
     init = tiny_checkpoint(tmp_path / "init.pt")
     teach(_teach_cfg(init), init, layout, log=lambda line: None)
     history = layout.finetune_dir("csg2d", "taught") / "history.csv"
@@ -190,7 +171,7 @@ def test_teach_starts_from_the_kept_search_seeded_network_never_the_shipped_mode
 
 
 def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):
-    layout = _project(tmp_path)
+    layout = sampled_project(tmp_path)
     init = tiny_checkpoint(tmp_path / "init.pt")
     with pytest.raises(ConfigError, match=r"teach\.csg2d\.sources: unknown source"):
         teach(_teach_cfg(init, sources={"ws": 1.0}), init, layout)

@@ -59,17 +59,13 @@ def test_the_command_prints_a_row_per_kind_of_a_checkpoint(tmp_path, capsys, tin
 
 def test_the_labels_batch_pairs_each_real_shape_with_its_label_and_the_command_reads_it(tmp_path, capsys,
                                                                                          tiny_checkpoint):
-    from plad.data.files import load_prepared, write_prepared
-    from plad.layout import Layout
-    from plad.learn.labels import LabelConfig, label_shapes, load_labels
+    from plad.data.files import load_prepared
+    from plad.learn.labels import load_labels
     from plad.tools.kind_gaps import labelled_batch
+    from tests.labelled import label_project, sampled_project
 
-    rng = np.random.default_rng(11)     # 9 training shapes (and 4 validation) drawn by sampled programs
-    split = {s: CSG2D.execute(pad_programs(CSG2D.sample(k, rng))).numpy() for s, k in (("train", 9), ("val", 4))}
-    layout = Layout(tmp_path)
-    write_prepared("csg2d", CSG2D.shape, split, layout.prepared("csg2d"), layout.prepared_summary("csg2d"))
-    label_shapes(LabelConfig(domain="csg2d", chunk=3, search={"insertions": 3, "refine": {"rounds": 0}}),
-                 layout.prepared("csg2d"), layout.labels_dir, log=lambda line: None)
+    layout = sampled_project(tmp_path)      # 9 training shapes drawn by sampled programs, all labelled
+    label_project(layout)
     labels = load_labels(layout.labels("csg2d"))
     shapes, programs, lengths = labelled_batch(CSG2D, layout, 3)
     # evenly spaced over the 9 labels: 0, 4, 8 (the teach stage's fit sample), each with its own real shape
