@@ -35,7 +35,8 @@ def near_matrix(tokens: Sequence) -> torch.Tensor:
         for k in range(len(params[0])):
             values = [p[k] for p in params]
             numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-            ranks = {v: r for r, v in enumerate(sorted(set(values), key=lambda v: (str(type(v)), v)))}
+            # numeric: the value's place in order; otherwise any code will do (only equality counts)
+            ranks = {v: r for r, v in enumerate(sorted(set(values)) if numeric else dict.fromkeys(values))}
             columns.append((numeric, torch.tensor([ranks[v] for v in values])))
         ok = torch.ones(len(ids), len(ids), dtype=torch.bool)
         for numeric, col in columns:

@@ -58,17 +58,29 @@ def curve(history: Path) -> dict[str, list[float]]:
     return out
 
 
-def read_summary(path: Path) -> dict:
-    """A teach run's summary json (``ValueError`` naming the file when it cannot be read as one)."""
+def read_summary(path: Path, history: bool = True) -> dict:
+    """A teach run's summary json, with its ``history`` list unless ``history`` is false (``ValueError``
+    naming the file when it cannot be read as one)."""
     try:
         summary = json.loads(path.read_text())
     except OSError as err:
         raise ValueError(f"{path}: cannot read ({err.strerror})") from None
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not JSON ({err.msg}, line {err.lineno})") from None
-    if not isinstance(summary, dict) or not isinstance(summary.get("history"), list):
+    if not isinstance(summary, dict) or (history and not isinstance(summary.get("history"), list)):
         raise ValueError(f"{path}: not a teach summary (no history list)")
     return summary
+
+
+def load_run(path: Path) -> tuple[str, dict[str, list[float]], dict]:
+    """(domain, curve, summary) of a committed summary ``results/finetune/<domain>/taught.json`` or of a run's
+    ``runs/finetune/<domain>/taught/history.csv`` (its summary: the ``summary.json`` beside it, if any)."""
+    if path.suffix == ".json":
+        summary = read_summary(path)
+        return summary.get("domain") or path.parent.name, summary_curve(path, summary), summary
+    beside = path.parent / "summary.json"
+    summary = read_summary(beside, history=False) if beside.exists() else {}
+    return summary.get("domain") or path.parent.parent.name, curve(path), summary
 
 
 def summary_curve(path: Path, summary: dict) -> dict[str, list[float]]:
@@ -91,17 +103,7 @@ def plot(histories: list[Path], output: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = []
-    for h in histories:
-        if h.suffix == ".json":         # results/finetune/<domain>/taught.json
-            summary = read_summary(h)
-            domain = summary.get("domain") or h.parent.name
-            runs.append((domain, summary_curve(h, summary), summary))
-            continue
-        summary_path = h.parent / "summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-        domain = summary.get("domain") or h.parent.parent.name
-        runs.append((domain, curve(h), summary))
+    runs = [load_run(h) for h in histories]
     domains = sorted({d for d, _, _ in runs})
     fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 4.2), squeeze=False)
     for ax, domain in zip(axes[0], domains):
