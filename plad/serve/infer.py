@@ -43,6 +43,7 @@ from plad.data.inputs import Item
 from plad.data.pictures import save_comparison, save_npy
 from plad.device import torch_threads
 from plad.domains.base import Domain
+from plad.eval.refinement import Refinement, refinement  # noqa: F401 (plad infer's levels; also imported from here)
 from plad.fsutil import WriteError, atomic_write_text, cause_of
 from plad.model.checkpoint import CheckpointError, load_model
 from plad.model.decode import infer_programs
@@ -128,68 +129,20 @@ def _wrap(text: str, width: int = 90) -> str:
     return "\n".join(text[i:i + width] for i in range(0, len(text), width))
 
 
-@dataclass(frozen=True)
-class Refinement:
-    """How the network's programs are refined before they are written: the rewriters' budget, and which of each
-    shape's beam candidates they start from."""
-
-    config: RefineConfig
-    #: refine every candidate of the shape's beam and keep the best refined one by the domain metric (else the
-    #: best-of-beam program only); never worse than refining the best-of-beam only, which is one of them
-    all_candidates: bool = False
-
-
-def refinement(domain: Domain, effort: str = "default") -> Refinement:
-    """The refinement of ``plad infer --effort LEVEL`` (:data:`plad.rewrite.EFFORTS`; a bad level: ValueError).
-
-    * ``fast``: the best-of-beam program, refined as the domain's fast search refines
-      (``search_config(domain, effort="fast").refine``; 2D CSG: one round; the domains that have not measured
-      their levels: no rounds, the network's beam alone);
-    * ``default``: the best-of-beam program, refined by :class:`~plad.rewrite.RefineConfig` ``()`` (3 rounds)
-      with the domain's ``refine_defaults`` (ShapeAssembly: removal of parts; 2D CSG: grafting, from its library
-      too); what ``plad infer`` did before the levels existed, but for those. Not ``search_config(domain).refine``,
-      which is less work (2D and 3D CSG: one round; ShapeAssembly also fewer, narrower PO sweeps and no insertion);
-    * ``best``: every candidate of the beam, each refined as for ``default``, the best kept per shape. Not
-      ``search_config(domain, effort="best").refine`` either: no domain's is more work than ``RefineConfig()``
-      (2D CSG: one round), so ``best`` would refine its best-of-beam program less than ``default`` does.
-    """
-    from plad.rewrite import EFFORTS, RefineConfig, search_config
-
-    if effort not in EFFORTS:
-        raise ValueError(f"effort = {effort!r}: expected one of {', '.join(EFFORTS)}")
-    if effort == "fast":
-        return Refinement(search_config(domain, effort="fast").refine)
-    space = domain.rewrite
-    return Refinement(RefineConfig(**(space.refine_defaults if space else {})), all_candidates=effort == "best")
-
-
 def refine_inferred(domain: Domain, inferred, targets: torch.Tensor,
                     how: Refinement) -> tuple[list[list[int]], torch.Tensor]:
     """(refined programs, their values) per shape of one batch: ``inferred`` (:class:`plad.model.decode.Inferred`)
     refined towards ``targets`` (B, *shape) on the CPU as ``how`` says."""
+    from plad.eval.refinement import beam_starts, keep_best
     from plad.rewrite import refine as rewrite
 
-    starts, owner = [list(p) for p in inferred.programs], list(range(len(inferred.programs)))
-    if how.all_candidates:   # each shape's best-of-beam program first: ties keep its refinement
-        beam = inferred.beam
-        finite = torch.isfinite(beam.logp).cpu()
-        for b, best in enumerate(inferred.programs):
-            for k in range(beam.programs.shape[1]):
-                program = beam.program(b, k)
-                if bool(finite[b, k]) and program != best:   # an empty slot of the beam has no program
-                    starts.append(program)
-                    owner.append(b)
+    starts, owner = beam_starts(inferred, how.all_candidates)
     # one thread: the rewriters run many small tensor operations, which a second thread only slows
     # (the four 2D examples, a busy 2-core machine: 2.2 s of CPU with one thread, 24 s with two)
     with torch_threads(1):   # the whole batch at once: the rewriters batch every candidate of every shape
         refined = rewrite(domain, starts, targets[owner], how.config)
-    programs, values = refined.programs[:len(targets)], refined.values[:len(targets)].clone()
-    better = domain.metric.better
-    for k in range(len(targets), len(starts)):
-        b = owner[k]
-        if bool(better(refined.values[k], values[b])):
-            programs[b], values[b] = refined.programs[k], refined.values[k]
-    return programs, values
+    chosen = keep_best(domain.metric.better, len(targets), owner, refined.values)
+    return [refined.programs[k] for k in chosen], refined.values[chosen].clone()
 
 
 def infer_items(model: PLADNet | None, domain: Domain, items: list[Item], beam: int, out_dir: str | Path,
