@@ -56,10 +56,32 @@ AMORTIZATION_PLOT = "amortization.png"
 SEARCH = "search"
 
 
-def eval_key(method: str, beam: int | None = None, refine: bool = False) -> str:
+def eval_key(method: str, beam: int | None = None, refine: bool = False, effort: str | None = None) -> str:
     """The result key of an evaluation: the method's, ``<method>_beam<k>`` for a beam of the amortization
-    sweep, ``<method>_refined`` with test-time refinement."""
-    return method + (f"_beam{beam}" if beam is not None else "") + ("_refined" if refine else "")
+    sweep, ``<method>_refined`` with test-time refinement (``refine_config``), ``<method>_refined_<effort>``
+    with the refinement of an effort level (``plad infer --effort``)."""
+    return (method + (f"_beam{beam}" if beam is not None else "") + ("_refined" if refine or effort else "")
+            + (f"_{effort}" if effort else ""))
+
+
+#: the effort levels that name result keys (:data:`plad.rewrite.EFFORTS`, which a test holds equal; not imported:
+#: the layout stays free of torch)
+EFFORT_LEVELS = ("fast", "default", "best")
+
+
+def split_effort(key: str) -> tuple[str, str | None]:
+    """(the key without its effort level, the level or None): ``search_best`` -> (``search``, ``best``),
+    ``m_refined_fast`` -> (``m_refined``, ``fast``), ``search`` -> (``search``, None)."""
+    head, _, level = key.rpartition("_")
+    if level in EFFORT_LEVELS and (head == SEARCH or head.endswith("_refined")):
+        return head, level
+    return key, None
+
+
+def search_key(effort: str = "default") -> str:
+    """The result key of search from scratch at an effort level: ``search`` at ``default`` (the table's row),
+    ``search_<effort>`` at the others."""
+    return SEARCH if effort == "default" else f"{SEARCH}_{effort}"
 
 
 def programs_csv(split: str) -> str:

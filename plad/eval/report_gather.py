@@ -10,7 +10,7 @@ from pathlib import Path
 
 from plad.data.files import DataError
 from plad.domains import get_domain
-from plad.layout import FLOOR, METRICS, SEARCH, STATE, SUMMARY, Layout, eval_key
+from plad.layout import FLOOR, METRICS, SEARCH, STATE, SUMMARY, Layout, eval_key, search_key, split_effort
 from plad.learn.loop import read_state, upgrade_summary
 from plad.tracking import (
     PIPELINE_EXPERIMENT,
@@ -154,6 +154,7 @@ def wall_totals(walls: dict[str, float | None]) -> tuple[float, int, int]:
 def _training_summary(domain: str, key: str, layout: Layout) -> Path | None:
     """The run summary of the model behind result ``key`` (SP's pretraining, a method's fine-tuning; a beam of
     the sweep or a refined evaluation: its method's), None for search and the floor."""
+    key = split_effort(key)[0]
     if key in (SEARCH, FLOOR):
         return None
     method = key[: -len("_refined")] if key.endswith("_refined") else key
@@ -291,7 +292,12 @@ def timed_from_files(domain: str, keys: list[str], layout: Layout) -> dict[str, 
                          test.get("refine_seconds_per_shape"), n)
     return out
 
-def amortization_keys(method: str, beams: list[int]) -> list[tuple[str, str]]:
-    """(result key, kind) of the amortization picture: the network at each beam, with refinement, search only."""
-    return [*((eval_key(method, beam=b), "network") for b in beams),
+def amortization_keys(method: str, beams: list[int],
+                      efforts: list[str] | tuple[str, ...] = ()) -> list[tuple[str, str]]:
+    """(result key, kind) of the amortization picture: the network at each beam, with refinement, search only; then
+    per effort level (least work first) network + refinement and search only at that level."""
+    keys = [*((eval_key(method, beam=b), "network") for b in beams),
             (eval_key(method, refine=True), "network + refinement"), (SEARCH, "search only")]
+    for level in efforts:
+        keys += [(eval_key(method, effort=level), "network + refinement"), (search_key(level), "search only")]
+    return list(dict.fromkeys(keys))

@@ -9,7 +9,7 @@ from plad.domains import get_domain
 from plad.eval.report_gather import MethodResult, Timed, amortization_keys
 from plad.eval.report_tables import domain_title, label
 from plad.fsutil import atomic_write
-from plad.layout import eval_key
+from plad.layout import SEARCH, eval_key, search_key, split_effort
 
 
 def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) -> None:
@@ -48,8 +48,9 @@ def convergence_png(results: dict[str, list[MethodResult]], path: str | Path) ->
     atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
 def amortization_png(points: dict[str, dict[str, Timed | None]], method: str, beams: list[int],
-                     path: str | Path) -> None:
-    """A panel per domain: metric (y) against seconds per shape (x, log), a marker per configuration."""
+                     path: str | Path, efforts: list[str] | tuple[str, ...] = ()) -> None:
+    """A panel per domain: metric (y) against seconds per shape (x, log), a marker per configuration; the beams
+    of the network, and the effort levels of search and of network + refinement, each joined as a curve."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -65,12 +66,21 @@ def amortization_png(points: dict[str, dict[str, Timed | None]], method: str, be
             ax.plot([x for x, _, _ in net], [y for _, y, _ in net], "-", color="C0", alpha=0.5)
             for x, y, b in net:
                 ax.annotate(f"beam {b}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        for keyed, color in ((lambda lv: search_key(lv), "C2"), (lambda lv: eval_key(method, effort=lv), "C1")):
+            curve = [(t.seconds_per_shape, t.test * k, lv) for lv in efforts if (t := got.get(keyed(lv))) is not None]
+            if len(curve) > 1:
+                ax.plot([x for x, _, _ in curve], [y for _, y, _ in curve], "--", color=color, alpha=0.5)
+            for x, y, lv in curve:
+                ax.annotate(lv, (x, y), textcoords="offset points", xytext=(4, -10), fontsize=7, color=color)
         labelled = set()
-        for key, kind in amortization_keys(method, beams):
+        for key, kind in amortization_keys(method, beams, efforts):
             t = got.get(key)
             if t is not None:
                 marker, color = style[kind]
-                name = f"{label(method)}, network only" if kind == "network" else label(key)
+                head, level = split_effort(key)
+                # one legend entry per curve: search's levels are one, refinement's levels another
+                name = (f"{label(method)}, network only" if kind == "network" else
+                        label(head) + (", effort levels" if level and head != SEARCH else ""))
                 ax.scatter([t.seconds_per_shape], [t.test * k], marker=marker, color=color, zorder=3,
                            label=None if name in labelled else name)
                 labelled.add(name)

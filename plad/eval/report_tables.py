@@ -9,7 +9,7 @@ from collections.abc import Mapping
 
 from plad.domains import get_domain
 from plad.eval.report_gather import NOT_RECORDED, Column, MethodResult, Timed, amortization_keys
-from plad.layout import FLOOR, SEARCH
+from plad.layout import FLOOR, SEARCH, split_effort
 from plad.learn.method_registry import key_label
 
 #: the rows that are no fine-tuning method; a method's label is what it declares (:func:`key_label`)
@@ -20,6 +20,9 @@ def label(key: str) -> str:
         return LABELS[key]
     if (declared := key_label(key)) is not None:
         return declared
+    head, level = split_effort(key)
+    if level is not None:
+        return f"{label(head)}, effort {level}"
     if key.endswith("_refined"):
         return label(key[: -len("_refined")]) + " + test-time refinement"
     head, _, beam = key.rpartition("_beam")
@@ -242,13 +245,18 @@ def beyond_markdown(rows: dict[str, dict[str, Timed | None]], keys: list[str],
     return "\n".join(lines)
 
 def amortization_markdown(points: dict[str, dict[str, Timed | None]], method: str, beams: list[int],
-                          profile: str | None = None) -> str:
-    """Metric against seconds per shape, per domain: network only (each beam), network + refinement, search only."""
-    keys = amortization_keys(method, beams)
+                          profile: str | None = None, efforts: list[str] | tuple[str, ...] = ()) -> str:
+    """Metric against seconds per shape, per domain: network only (each beam), network + refinement, search only,
+    and both of those at each effort level."""
+    keys = amortization_keys(method, beams, efforts)
     lines = ["# Amortization: metric against seconds per shape" + (f" ({profile} profile)" if profile else ""), "",
              f"The network is {label(method)}'s model; refinement rewrites its best-of-beam program "
              f"(beam of the evaluation stage); search starts from scratch. Wall-clock seconds per shape on this "
              f"machine (a shared machine's numbers include waiting for a core).", ""]
+    if efforts:
+        lines += [f"At each effort level ({', '.join(efforts)}): search as `plad search --effort LEVEL` searches, "
+                  f"and the network's beam refined as `plad infer --effort LEVEL` refines it (at `best`, every "
+                  f"candidate of the beam, the best kept).", ""]
     lines += ["\"x search\" is how many times faster than search only a configuration is (search's seconds per "
               "shape over its own).", ""]
     missing = []

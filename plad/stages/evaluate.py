@@ -16,6 +16,9 @@ Beyond the paper (off by default, so the paper-comparable rows stay as they
 are): ``refine: true`` refines each shape's best-of-beam program with the
 rewriters (:func:`plad.rewrite.refine`, ``refine_config``, ``refine_workers``
 processes) before scoring, into ``results/eval/<method>_refined/<domain>/``;
+``refine_effort: LEVEL`` refines instead as ``plad infer --effort LEVEL`` does
+(:func:`plad.eval.refinement.refinement`: at ``best`` every candidate of the beam, the best kept), into
+``results/eval/<method>_refined_<LEVEL>/<domain>/`` (the report's effort rows);
 ``sweep_beam: k`` evaluates with beam k instead of ``beam``, into
 ``results/eval/<method>_beam<k>/<domain>/`` (the amortization sweep).
 ``metrics.json`` gives the seconds per shape of the network and of the
@@ -32,7 +35,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -71,6 +74,15 @@ class EvaluateConfig:
     refine_config: dict = field(default_factory=dict)
     #: refinement worker processes (one thread each)
     refine_workers: int = 1
+    #: refine as ``plad infer --effort`` does at this level (fast | default | best) instead of by ``refine_config``;
+    #: implies ``refine`` (set by the evaluate_effort stages)
+    refine_effort: str | None = None
+    #: refinement settings applied on top of ``refine_effort``'s (a trial profile's cheaper levels; params.yaml:
+    #: none, so that a level is what ``plad infer --effort`` runs)
+    effort_overrides: dict = field(default_factory=dict)
+    #: ``refine_effort`` levels evaluated one after another in one process, each into its own result (the stages
+    #: evaluate_effort@<domain>); empty: ``refine_effort`` alone
+    effort_levels: list[str] = field(default_factory=list)
     #: a beam of the amortization sweep (set per beam by the evaluate_finetuned stages): used instead of ``beam``
     sweep_beam: int | None = None
 
@@ -88,11 +100,29 @@ class EvaluateConfig:
             raise ConfigError(str(err).removeprefix(": ")) from None
         if self.refine_workers < 1:
             raise ConfigError(f"refine_workers = {self.refine_workers}: expected at least 1")
+        from plad.rewrite import EFFORTS
+
+        if self.refine_effort is not None and self.refine_effort not in EFFORTS:
+            raise ConfigError(f"refine_effort = {self.refine_effort!r}: expected one of {', '.join(EFFORTS)}, "
+                              f"or null (refine_config)")
+        bad = [v for v in self.effort_levels if v not in EFFORTS]
+        if bad:
+            raise ConfigError(f"effort_levels: {bad[0]!r} is not an effort level ({', '.join(EFFORTS)})")
+        if not isinstance(self.effort_overrides, dict):
+            raise ConfigError(f"effort_overrides = {self.effort_overrides!r}: expected a mapping of refine settings")
+        try:
+            build(RefineConfig, dict(self.effort_overrides), "effort_overrides", source="")
+        except ConfigError as err:
+            raise ConfigError(str(err).removeprefix(": ")) from None
+
+    def levels(self) -> list[EvaluateConfig]:
+        """The configuration of each evaluation this stage runs: one per effort level, else itself."""
+        return [replace(self, refine_effort=v, effort_levels=[]) for v in self.effort_levels] or [self]
 
 
 def result_key(cfg: EvaluateConfig) -> str:
     """Where this evaluation's results go (:func:`plad.layout.eval_key`)."""
-    return eval_key(cfg.method, cfg.sweep_beam, cfg.refine)
+    return eval_key(cfg.method, cfg.sweep_beam, cfg.refine, cfg.refine_effort)
 
 
 def _write_programs(path, domain, values: np.ndarray, programs: list[list[int]], index: np.ndarray) -> None:
@@ -143,7 +173,8 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
 
     started = time.monotonic()
 
-    if cfg.refine:   # refine_config and refine_workers are checked with the config (EvaluateConfig.__post_init__)
+    refine = cfg.refine or cfg.refine_effort is not None
+    if refine:   # refine_config and refine_workers are checked with the config (EvaluateConfig.__post_init__)
         from plad.rewrite.pool import refine_all
     beam = cfg.beam if cfg.sweep_beam is None else cfg.sweep_beam
     if beam < 1:
@@ -157,22 +188,48 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     out = layout.eval_dir(result_key(cfg), cfg.domain)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"domain": cfg.domain, "method": cfg.method, "metric": domain.metric.name,
-                    "higher_is_better": domain.metric.higher_is_better, "beam": beam, "refine": cfg.refine,
+                    "higher_is_better": domain.metric.higher_is_better, "beam": beam, "refine": refine,
                     "checkpoint": str(checkpoint)}
+    how = None
+    if cfg.refine_effort is not None:
+        from plad.eval.refinement import refinement
+
+        how = refinement(domain, cfg.refine_effort)
+        if cfg.effort_overrides:
+            from plad.rewrite.pool import refine_config
+
+            how = replace(how, config=refine_config({**asdict(how.config), **cfg.effort_overrides}))
+        report.update(refine_effort=cfg.refine_effort, refine_all_candidates=how.all_candidates,
+                      refine_config=asdict(how.config))
     training = training_record(checkpoint)
     refine_timed = False
     for split in cfg.splits:
         targets, index = load_split(layout.prepared(cfg.domain), split, cfg.limit)
         start = time.monotonic()
-        values, programs, shapes = infer_batched(model, domain, targets, beam, cfg.batch_size,
-                                                 desc=f"{cfg.method} {split} beam {beam}")
+        desc = f"{cfg.method} {split} beam {beam}"
+        if how is None:
+            values, programs, shapes = infer_batched(model, domain, targets, beam, cfg.batch_size, desc=desc)
+            starts, owner = programs, list(range(len(programs)))
+        else:
+            from plad.eval.refinement import infer_starts
+
+            values, programs, shapes, starts, owner = infer_starts(model, domain, targets, beam, cfg.batch_size,
+                                                                   how.all_candidates, desc=desc)
         network = time.monotonic() - start
         n = max(len(values), 1)
         row = {"mean": round(float(values.mean()), 6), "n": int(len(values))}
-        if cfg.refine:
+        if refine:
             row["network_mean"] = row["mean"]
-            programs, values, shapes, timed = refine_all(domain.name, programs, targets, cfg.refine_config,
-                                                         cfg.refine_workers)
+            overrides = cfg.refine_config if how is None else asdict(how.config)
+            aims = targets if how is None else targets[owner]   # (len(starts), *shape): each start's target
+            refined, values, shapes, timed = refine_all(domain.name, starts, aims, overrides, cfg.refine_workers)
+            if how is not None:   # each shape's best refined start (its best-of-beam program's on ties)
+                from plad.eval.refinement import keep_best
+
+                chosen = keep_best(domain.metric.better, len(programs), owner, values)
+                refined, values, shapes = [refined[k] for k in chosen], values[chosen], shapes[chosen]
+                row["refined_starts"] = len(starts)
+            programs = refined
             row["mean"] = round(float(values.mean()), 6)
             row["refine_stopped_by_time"] = timed
             refine_timed |= timed
@@ -190,13 +247,20 @@ def evaluate(cfg: EvaluateConfig, layout: Layout = Layout()) -> dict:
     report["stopped_by_time"] = bool(refine_timed or (training or {}).get("stopped_by_time"))
     report["provenance"] = stamp(cfg, started)
     atomic_write_text(out / METRICS, json.dumps(report, indent=2) + "\n")
-    if cfg.method == SP and not cfg.refine and cfg.sweep_beam is None:  # the floor is evaluate@<d>'s output
+    if cfg.method == SP and not refine and cfg.sweep_beam is None:  # the floor is evaluate@<d>'s output
         report[FLOOR] = evaluate_floor_splits(cfg, domain, layout)
     return report
 
 
 def tracked_evaluate(cfg: EvaluateConfig, ctx: StageContext = StageContext()) -> dict:
-    """:func:`evaluate` as an MLflow run: the metric per split and the outputs as artifacts."""
+    """:func:`evaluate` as an MLflow run: the metric per split and the outputs as artifacts; with
+    ``effort_levels``, one run per level, one after another ({result key: report})."""
+    if cfg.effort_levels:
+        return {result_key(c): _tracked_one(c, ctx) for c in cfg.levels()}
+    return _tracked_one(cfg, ctx)
+
+
+def _tracked_one(cfg: EvaluateConfig, ctx: StageContext) -> dict:
     read_checkpoint(ctx.layout.model(cfg.domain, cfg.method))  # a missing or bad checkpoint fails before MLflow
     out = ctx.layout.eval_dir(result_key(cfg), cfg.domain)
     with StageRun("evaluate", cfg.domain, asdict(cfg), out, method=result_key(cfg), params_path=ctx.params) as run:

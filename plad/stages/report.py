@@ -15,10 +15,13 @@ its validation history) registered as ``plad-<domain>`` with the
 
 Beyond the paper (``beyond``, from the evaluation files whatever the
 source): a table of rows with search and their seconds per shape, appended
-to ``table.md``; ``results/amortization.md`` and ``.png``: metric against
-seconds per shape for the ``amortization.method``'s model at each of
-``beams``, with test-time refinement, and search only. Missing inputs of
-these are named in the files, not errors.
+to ``table.md``, with search and the ``amortization.method``'s network +
+refinement at each effort level of ``efforts.table``;
+``results/amortization.md`` and ``.png``: metric against seconds per shape
+for the ``amortization.method``'s model at each of ``beams``, with test-time
+refinement, and search only, and both of these at each of ``efforts.levels``
+(also ``report.json``'s ``efforts`` per domain). Missing inputs of these are
+named in the files, not errors.
 
 The MLflow run of the report is nested under the profile's pipeline run
 (:mod:`plad.tracking.rows`), which gets ``table.md``, ``convergence.png``,
@@ -74,6 +77,8 @@ from plad.layout import (
     SUMMARY,
     TABLE,
     Layout,
+    eval_key,
+    search_key,
 )
 from plad.provenance import stamp
 from plad.stages import StageContext, stage_main
@@ -86,6 +91,25 @@ from plad.tracking.rows import PIPELINE, runs_path
 class AmortizationConfig:
     #: the method whose model the evaluate_refined stages and evaluate_finetuned's beam sweep evaluate
     method: str = "lest_st_ws_search"
+
+
+@dataclass
+class EffortsConfig:
+    """The effort levels of search and of network + refinement in the report (issue 56): ``levels`` in
+    ``report.json`` and the amortization picture and table (the whole curve), ``table`` as rows of ``table.md``."""
+
+    levels: list[str] = field(default_factory=list)
+    table: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        from plad.layout import EFFORT_LEVELS
+
+        for name in ("levels", "table"):
+            bad = [v for v in getattr(self, name) if v not in EFFORT_LEVELS]
+            if bad:
+                raise ValueError(f"{name}: {bad[0]!r} is not an effort level ({', '.join(EFFORT_LEVELS)})")
+        if not set(self.table) <= set(self.levels):
+            raise ValueError(f"table {self.table}: every level of the table must be one of levels {self.levels}")
 
 
 @dataclass
@@ -105,6 +129,9 @@ class ReportConfig:
     #: rows beyond the paper, by result key (``search``, a method, ``<method>_refined``), in their own table
     beyond: list[str] = field(default_factory=list)
     amortization: AmortizationConfig = field(default_factory=AmortizationConfig)
+    #: effort levels of search (stages search_only, search_effort) and of the amortization method's network +
+    #: refinement (stages evaluate_effort)
+    efforts: EffortsConfig = field(default_factory=EffortsConfig)
     #: the beams of the amortization sweep (the top-level ``beams``)
     beams: list[int] = field(default_factory=lambda: [1, 5, 10])
 
@@ -210,25 +237,28 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
         floors = {d: floor_from_mlflow(d) for d in cfg.domains}
     else:
         floors = {d: floor_from_files(d, layout) for d in cfg.domains}
-    keys = [k for k, _ in amortization_keys(cfg.amortization.method, cfg.beams)]
-    shown = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values(), *cfg.beyond, *keys]))
+    method, levels = cfg.amortization.method, cfg.efforts.levels
+    keys = [k for k, _ in amortization_keys(method, cfg.beams, levels)]
+    # the rows beyond the paper, then search and network + refinement at each effort level of the table
+    beyond_keys = list(dict.fromkeys([*cfg.beyond, *(k for lv in cfg.efforts.table
+                                                    for k in (search_key(lv), eval_key(method, effort=lv)))]))
+    shown = list(dict.fromkeys([*cfg.methods, *cfg.per_round.values(), *beyond_keys, *keys]))
     columns = {d: column(d, shown, layout) for d in cfg.domains}
     table = table_markdown(results, cfg.methods, cfg.per_round, cfg.profile, floors, columns)
-    beyond = {d: timed_from_files(d, cfg.beyond, layout) for d in cfg.domains}
-    if cfg.beyond:
-        table += "\n" + beyond_markdown(beyond, cfg.beyond, columns)
-    table += "\n" + columns_markdown(columns, [*cfg.methods, *cfg.per_round.values(), *cfg.beyond])
+    beyond = {d: timed_from_files(d, beyond_keys, layout) for d in cfg.domains}
+    if beyond_keys:
+        table += "\n" + beyond_markdown(beyond, beyond_keys, columns)
+    table += "\n" + columns_markdown(columns, [*cfg.methods, *cfg.per_round.values(), *beyond_keys])
     atomic_write_text(out / TABLE, table)
     points = {d: timed_from_files(d, keys, layout) for d in cfg.domains}
-    atomic_write_text(out / AMORTIZATION_TABLE,
-                      amortization_markdown(points, cfg.amortization.method, cfg.beams, cfg.profile))
-    amortization_png(points, cfg.amortization.method, cfg.beams, out / AMORTIZATION_PLOT)
+    atomic_write_text(out / AMORTIZATION_TABLE, amortization_markdown(points, method, cfg.beams, cfg.profile, levels))
+    amortization_png(points, method, cfg.beams, out / AMORTIZATION_PLOT, levels)
     convergence_png({d: [r for r in rs if r.key not in cfg.per_round.values()] for d, rs in results.items()},
                     out / CONVERGENCE)
     summary: dict = {"source": cfg.source, "domains": {}}
     where = columns_json(columns)
     for d, rs in results.items():
-        timed = timed_from_files(d, list(dict.fromkeys([r.key for r in rs] + cfg.beyond + keys)), layout)
+        timed = timed_from_files(d, list(dict.fromkeys([r.key for r in rs] + beyond_keys + keys)), layout)
         entry = {"test": {r.key: r.test for r in rs}, "train_seconds": {r.key: r.train_seconds for r in rs},
                  "stopped_by_time": {r.key: r.stopped_by_time for r in rs}, "floor": floors[d],
                  "column": where[d], "rows": result_rows(rs, floors[d], timed, _pretrain_summary(d, layout))}
@@ -237,6 +267,11 @@ def report(cfg: ReportConfig, layout: Layout = Layout()) -> dict:
             entry["champion"] = {"method": best[0], "val": best[1]}
         entry["beyond"] = {k: (vars(t) if t else None) for k, t in beyond[d].items()}
         entry["amortization"] = {k: (vars(t) if t else None) for k, t in points[d].items()}
+        # per effort level, least work first: search and network + refinement (None: not computed)
+        entry["efforts"] = {lv: {kind: (vars(t) if (t := points[d].get(k)) else None)
+                                 for kind, k in (("search", search_key(lv)),
+                                                 ("network + refinement", eval_key(method, effort=lv)))}
+                            for lv in levels}
         summary["domains"][d] = entry
     summary["provenance"] = stamp(cfg, started)
     atomic_write_text(out / REPORT, json.dumps(summary, indent=2) + "\n")

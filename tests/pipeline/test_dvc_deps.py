@@ -47,6 +47,7 @@ from plad.layout import (
     Layout,
     eval_key,
     programs_csv,
+    search_key,
 )
 from tests.conftest import REPO_ROOT
 from tests.imports import imported_modules
@@ -223,10 +224,9 @@ def covers(dep: str, path: str) -> bool:
 def test_the_pipeline_has_every_stage_of_every_domain_and_method():
     p = params()
     names = {s.name for s in stages()}
-    assert names == {"prepare", "report"} | {f"{g}@{d}" for g in ("synthesize", "pretrain", "evaluate", "search_only",
-                                                                  "evaluate_finetuned", "evaluate_refined", "label",
-                                                                  "teach", "evaluate_taught", "evaluate_taught_refined")
-                                             for d in p["domains"]} | \
+    groups = ("synthesize", "pretrain", "evaluate", "search_only", "evaluate_finetuned", "evaluate_refined",
+              "search_effort", "evaluate_effort", "label", "teach", "evaluate_taught", "evaluate_taught_refined")
+    assert names == {"prepare", "report"} | {f"{g}@{d}" for g in groups for d in p["domains"]} | \
         {f"finetune@{d}-{m}" for d in p["domains"] for m in p["methods"]}
 
 
@@ -366,6 +366,19 @@ def test_editing_one_methods_rounds_makes_only_its_stages_stale(stale_after):
         assert stale_after(more_rounds(domain, method)) == {f"finetune@{domain}-{method}"}, (domain, method)
 
 
+def _levels(stage: Stage) -> list[str]:
+    """The effort levels a stage's command runs (its ``--set effort_levels=[...]``)."""
+    return yaml.safe_load(stage.sets["effort_levels"])
+
+
+def test_the_effort_stages_run_the_reports_levels():
+    """search_effort runs every level of report.efforts.levels but default (search_only's), evaluate_effort every
+    level: the report's curve is what the pipeline computes."""
+    levels = params()["report"]["efforts"]["levels"]
+    by_group = {s.group: _levels(s) for s in stages() if s.group in ("search_effort", "evaluate_effort")}
+    assert by_group == {"search_effort": [lv for lv in levels if lv != "default"], "evaluate_effort": levels}
+
+
 # -- the layout ----------------------------------------------------------------------------------------
 def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     """(inputs, outputs) of a stage as the layout places them."""
@@ -392,6 +405,14 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
         out = layout.eval_dir(SEARCH, domain)
         splits = p["search_only"][domain]["splits"]
         return rel([layout.prepared(domain)]), rel([*(out / programs_csv(s) for s in splits), out / METRICS])
+    if stage.group == "search_effort":   # a result per effort level, in one stage
+        outs = [layout.eval_dir(search_key(lv), domain) / f for lv in _levels(stage)
+                for f in (*map(programs_csv, p["search_only"][domain]["splits"]), METRICS)]
+        return rel([layout.prepared(domain)]), rel(outs)
+    if stage.group == "evaluate_effort":
+        outs = [layout.eval_dir(eval_key(method, effort=lv), domain) / f for lv in _levels(stage)
+                for f in (*map(programs_csv, p["evaluate"][domain]["splits"]), GRID, METRICS)]
+        return rel([layout.finetune_dir(domain, method), layout.prepared(domain)]), rel(outs)
     if stage.group == "evaluate_finetuned":   # every method's model, then the sweep's beams, in one stage
         sweep = stage.option("--sweep-method")
         keys = [*p["methods"], *(eval_key(sweep, beam=b) for b in p["beams"])]
@@ -425,8 +446,9 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "report":
         rows = [*p["report"]["methods"], *p["report"]["per_round"].values()]
         ins = [layout.eval_dir(m, d) / METRICS for m in rows for d in p["domains"]]
-        timed = [*p["report"]["beyond"], *(k for k, _ in amortization_keys(p["report"]["amortization"]["method"],
-                                                                             p["beams"]))]
+        method, efforts = p["report"]["amortization"]["method"], p["report"]["efforts"]
+        timed = [*p["report"]["beyond"], *(k for k, _ in amortization_keys(method, p["beams"], efforts["levels"])),
+                 *(k for lv in efforts["table"] for k in (search_key(lv), eval_key(method, effort=lv)))]
         ins += [layout.eval_dir(k, d) / METRICS for k in timed for d in p["domains"]]
         ins += [layout.finetune_dir(d, m) for m in rows if m != SP for d in p["domains"]]
         ins += [layout.finetune_summary(d, m) for m in rows if m != SP for d in p["domains"]]

@@ -156,3 +156,106 @@ def test_plad_infer_refine_is_never_worse_than_without(root, tmp_path, capsys):
     assert main(["score", "csg2d", "--pred", str(runs[True] / "s0.recon.npy"),
                  "--target", str(runs[True] / "s0.input.npy")]) == 0
     assert float(capsys.readouterr().out.split()[-1]) == pytest.approx(got[True][0], abs=1e-5)
+
+
+def test_search_at_an_effort_level_writes_its_own_row(root):
+    from plad.stages.search_only import SearchOnlyConfig, search_only
+
+    layout = Layout(root)
+    search_only(SearchOnlyConfig(domain="csg2d", limit=3, search={"insertions": 1, "refine": {"rounds": 0}}), layout)
+    default = (layout.eval_dir(SEARCH, "csg2d") / METRICS).read_text()
+    got = search_only(SearchOnlyConfig(domain="csg2d", limit=3, search={"effort": "fast"}), layout)
+    saved = json.loads((layout.eval_dir("search_fast", "csg2d") / METRICS).read_text())
+    assert got["method"] == saved["method"] == "search_fast" and saved["config"]["effort"] == "fast"
+    assert saved["test"]["n"] == 3 and saved["test"]["mean"] == got["test"]["mean"]
+    assert (layout.eval_dir(SEARCH, "csg2d") / METRICS).read_text() == default   # the default row untouched
+    with pytest.raises(ConfigError, match="search.effort = 'quick': expected one of fast, default, best"):
+        SearchOnlyConfig(domain="csg2d", search={"effort": "quick"})
+
+
+@pytest.mark.parametrize("effort", ["fast", "best"])
+def test_evaluate_at_an_effort_level_gives_what_plad_infer_refines(root, effort):
+    """The report's effort rows: the network's programs refined as ``plad infer --effort`` refines them (at
+    ``best``, every candidate of the beam, the best kept), per shape exactly its values on the same batch."""
+    import torch
+
+    from plad.domains import get_domain
+    from plad.eval.refinement import refinement
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_programs
+    from plad.serve.infer import refine_inferred
+
+    layout = Layout(root)
+    base = dict(domain="csg2d", beam=3, batch_size=8, limit=4, grid_shapes=2, device="cpu")
+    got = evaluate(EvaluateConfig(**base, refine_effort=effort), layout)
+    out = layout.eval_dir(f"sp_refined_{effort}", "csg2d")
+    saved = json.loads((out / METRICS).read_text())
+    assert saved["refine_effort"] == effort and saved["refine"] and saved["refine_all_candidates"] == (effort == "best")
+    values = _values(out / programs_csv("test"))
+    assert got["test"]["mean"] == pytest.approx(values.mean(), abs=1e-6)
+    assert (values <= _network_values(layout, base) + 1e-9).all()   # Chamfer: never worse than the beam's best
+    assert got["test"]["refined_starts"] > 4 if effort == "best" else got["test"]["refined_starts"] == 4
+    # a trial profile's overrides on top of the level: no rounds, so each shape keeps the best of its beam
+    unrefined = evaluate(EvaluateConfig(**base, refine_effort=effort, effort_overrides={"rounds": 0}), layout)
+    assert unrefined["test"]["mean"] == unrefined["test"]["network_mean"] == got["test"]["network_mean"]
+    assert [c.refine_effort for c in EvaluateConfig(**base, effort_levels=["fast", "best"]).levels()] == \
+        ["fast", "best"]
+
+    from plad.data.files import load_split
+
+    targets, _ = load_split(layout.prepared("csg2d"), "test", 4)
+    model, _ = load_model(layout.model("csg2d", SP), torch.device("cpu"), expect_domain="csg2d")
+    domain = get_domain("csg2d")
+    shapes = torch.from_numpy(targets)
+    _, want = refine_inferred(domain, infer_programs(model, domain, shapes, 3), shapes, refinement(domain, effort))
+    assert values == pytest.approx(want.numpy(), abs=1e-6)
+    with pytest.raises(ConfigError, match="refine_effort = 'quick': expected one of fast, default, best"):
+        EvaluateConfig(**base, refine_effort="quick")
+
+
+def _network_values(layout: Layout, base: dict) -> np.ndarray:
+    evaluate(EvaluateConfig(**base), layout)
+    return _values(layout.eval_dir(SP, "csg2d") / programs_csv("test"))
+
+
+def test_the_report_carries_every_effort_level_and_tables_the_chosen_ones(tmp_path):
+    from plad.stages.report import EffortsConfig
+
+    layout = Layout(tmp_path)
+    _metrics(layout, SP, "csg2d", 1.5, 0.01)
+    for key, (v, s) in {"search_fast": (0.85, 0.13), SEARCH: (0.82, 0.3), "search_best": (0.78, 3.1),
+                        "lest_st_ws_search_refined_fast": (0.9, 0.1), "lest_st_ws_search_refined_default": (0.86, 0.2),
+                        "lest_st_ws_search_refined_best": (0.8, 1.8)}.items():
+        _metrics(layout, key, "csg2d", v, s)
+    cfg = ReportConfig(domains=["csg2d"], methods=["sp"], per_round={}, beyond=[SEARCH],
+                       amortization=AmortizationConfig("lest_st_ws_search"), beams=[1],
+                       efforts=EffortsConfig(levels=["fast", "default", "best"], table=["default", "best"]))
+    summary = report(cfg, layout)
+    efforts = summary["domains"]["csg2d"]["efforts"]
+    assert list(efforts) == ["fast", "default", "best"]
+    assert efforts["best"]["search"]["test"] == 0.78 and efforts["fast"]["network + refinement"]["test"] == 0.9
+    assert efforts["default"]["search"]["seconds_per_shape"] == 0.3
+    table = (layout.results_dir / TABLE).read_text()
+    assert "| search, no network | 0.820 | 300.0 ms |" in table
+    assert "| search, no network, effort best | 0.780 | 3.10 s |" in table
+    assert "| LEST+ST+WS + search-seeded P_BEST + test-time refinement, effort default | 0.860 | 200.0 ms |" in table
+    assert "effort fast" not in table   # fast is in the curve, not the table
+    amort = (layout.results_dir / AMORTIZATION_TABLE).read_text()
+    assert "| search, no network, effort fast (search only) | 0.850 | 130.0 ms | 2.3 |" in amort
+    assert "| LEST+ST+WS + search-seeded P_BEST + test-time refinement, effort best (network + refinement) | 0.800 |" \
+        in amort
+    with pytest.raises(ValueError, match="every level of the table must be one of levels"):
+        EffortsConfig(levels=["fast"], table=["best"])
+    with pytest.raises(ValueError, match="'quick' is not an effort level"):
+        EffortsConfig(levels=["quick"])
+
+
+def test_the_layouts_effort_levels_are_the_searchs():
+    from plad.layout import EFFORT_LEVELS, eval_key, search_key, split_effort
+    from plad.rewrite import EFFORTS
+
+    assert EFFORT_LEVELS == EFFORTS
+    for level in EFFORTS:
+        assert split_effort(search_key(level)) == (SEARCH, None if level == "default" else level)
+        assert split_effort(eval_key("lest_st", effort=level)) == ("lest_st_refined", level)
+    assert split_effort("lest_st_beam5") == ("lest_st_beam5", None) and split_effort("st_fast") == ("st_fast", None)
