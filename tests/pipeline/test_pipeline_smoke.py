@@ -94,7 +94,8 @@ def test_smoke_repro_is_tracked_in_mlflow(smoke_run):
     for domain in DOMAINS:
         keys = set(evaluated[evaluated["tags.plad.domain"] == domain]["tags.plad.method"])
         assert keys == {"sp", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
-                        *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined"}
+                        *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined",
+                        *(f"lest_st_ws_search_refined_{e}" for e in ("fast", "default", "best"))}
     finetuned = runs[(runs["tags.plad.stage"] == "finetune") & runs["tags.plad.round"].isna()]
     for domain in DOMAINS:
         mine = finetuned[finetuned["tags.plad.domain"] == domain]
@@ -136,7 +137,9 @@ def test_smoke_repro_top_level_is_the_results_table(smoke_run):
     assert (runs["experiment_id"] == expected).all()
     rows = top[top["tags.plad.row"] == "result"]
     keys = {"sp", "floor", "search", *METHODS, "lest_st_per_round", "lest_st_ws_search", "lest_st_ws_search_refined",
-            *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined"}
+            *(f"lest_st_ws_search_beam{b}" for b in (1, 5, 10)), "taught", "taught_refined",
+            # the effort stages' rows (search_effort@<d>, evaluate_effort@<d>)
+            "search_fast", "search_best", *(f"lest_st_ws_search_refined_{e}" for e in ("fast", "default", "best"))}
     for domain in DOMAINS:
         mine = rows[rows["tags.plad.domain"] == domain]
         assert sorted(mine["tags.plad.method"]) == sorted(keys)          # one row each

@@ -46,12 +46,14 @@ def test_base_domain_profile_and_set_merged_typed_as_yaml(project, capsys):
                    "search:\n"
                    "  effort: fast\n"
                    "  refine:\n"
-                   "    rounds: 0\n")
+                   "    rounds: 0\n"
+                   "effort_levels: []\n"
+                   "effort_overrides: {}\n")
     # without --profile: the params file's own (cpu, which changes nothing); a domain's block over base
     status, out, _ = plad(capsys, "config", "search_only.csg2d", "--params", str(project))
     assert status == 0 and out.splitlines()[0] == f"# search_only.csg2d as its stage builds it: {project}"
     assert yaml.safe_load(out) == {"domain": "csg2d", "splits": ["test"], "limit": 50, "workers": 2,
-                                   "search": {"effort": "default"}}
+                                   "search": {"effort": "default"}, "effort_levels": [], "effort_overrides": {}}
 
 
 @pytest.mark.parametrize("name", ["finetune.csg3d", "pretrain.csg2d", "report"])
