@@ -372,3 +372,48 @@ class TokenTable:
 
     def encode(self, names: Iterable[str]) -> list[int]:
         return [self.index(n) for n in names]
+
+
+def near_matrix(tokens: Sequence) -> torch.Tensor:
+    """(V, V) bool: ``near[a, b]`` when token ``b`` is ``a`` or one grid step from it: the same kind, the same
+    non-numeric parameters, and every numeric parameter at most one place apart in the sorted values that
+    parameter takes over the kind's tokens (a token without parameters is near itself only)."""
+    V = len(tokens)
+    near = torch.eye(V, dtype=torch.bool)
+    by_kind: dict[str, list[int]] = {}
+    for i, t in enumerate(tokens):
+        if t.params:
+            by_kind.setdefault(t.kind, []).append(i)
+    for ids in by_kind.values():
+        params = [tokens[i].params for i in ids]
+        if len({len(p) for p in params}) != 1:
+            continue
+        columns = []                                    # per parameter: (len(ids),) rank or exact value code
+        for k in range(len(params[0])):
+            values = [p[k] for p in params]
+            numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+            # numeric: the value's place in order; otherwise any code will do (only equality counts)
+            ranks = {v: r for r, v in enumerate(sorted(set(values)) if numeric else dict.fromkeys(values))}
+            columns.append((numeric, torch.tensor([ranks[v] for v in values])))
+        ok = torch.ones(len(ids), len(ids), dtype=torch.bool)
+        for numeric, col in columns:
+            diff = (col[:, None] - col[None, :]).abs()
+            ok &= diff <= 1 if numeric else diff == 0
+        index = torch.tensor(ids)
+        near[index[:, None], index[None, :]] = ok
+    return near
+
+
+def near_targets(tokens: Sequence[Token], smoothing: float) -> torch.Tensor:
+    """(V, V) float: row ``a`` the training target of token ``a`` when a near miss should cost less than a far
+    one: ``1 - smoothing`` on ``a`` and ``smoothing`` shared evenly by the tokens one grid step from it
+    (:func:`near_matrix`); a token with none (an operator, a stop) keeps its one-hot row. Each row sums to 1."""
+    if not 0.0 <= smoothing < 1.0:
+        raise ValueError(f"near smoothing {smoothing}: expected 0 <= smoothing < 1")
+    near = near_matrix(tokens)
+    eye = torch.eye(len(tokens), dtype=torch.float64)
+    others = near.double() - eye                                   # (V, V) 1 where one step away
+    count = others.sum(1, keepdim=True)
+    spread = torch.where(count > 0, others / count.clamp(min=1), torch.zeros_like(others))
+    keep = torch.where(count > 0, torch.full_like(count, 1.0 - smoothing), torch.ones_like(count))
+    return (eye * keep + spread * smoothing).float()

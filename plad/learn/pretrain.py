@@ -400,6 +400,8 @@ def _fingerprint(run: _Run) -> dict:
             "warmup_steps": cfg.train.warmup_steps, "curriculum": asdict(cfg.curriculum),
             # buckets change the batches (plain batches keep the fingerprint of earlier versions)
             **({"bucket_pool": cfg.train.bucket_pool} if cfg.train.bucket_pool > 1 else {}),
+            # a near-miss loss changes the steps (the plain loss keeps the fingerprint of earlier versions)
+            **({"near_smoothing": cfg.train.near_smoothing} if cfg.train.near_smoothing else {}),
             # a continued run resumes only from a last.pt that continued the same checkpoint the same way
             **({"init": sha256_file(init_path), "continue_lr": cfg.continue_lr} if init_path else {})}
 

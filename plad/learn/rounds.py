@@ -263,7 +263,8 @@ def run_rounds(job: Job, method: MethodConfig, cfg: RoundsConfig, hooks: RoundHo
         setup = FitSetup(domain.name, names, objective=Objective("val", metric.higher_is_better),
                          budget_seconds=remaining(),
                          on_unit=(lambda e, row: hooks.on_epoch(rnd, e, row)) if hooks.on_epoch else None,
-                         desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd},
+                         desc=f"round {rnd} train", fingerprint={"method": method.method, "round": rnd, **(
+                             {"near_smoothing": cfg.train.near_smoothing} if cfg.train.near_smoothing else {})},
                          precision=job.precision)
         result = run(f"round {rnd}: train", fit, model, batches, validate_epoch, cfg.train, round_dir, setup)
         value = run(f"round {rnd}: validate", mean_metric, model, domain, job.val, cfg.val_beam_round,

@@ -174,7 +174,9 @@ def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int)
     fingerprint = {"labels": labels_sha256, "init": init_digest, "n": n,
                    "config": {k: v for k, v in asdict(cfg).items()
                               if k not in ("max_minutes", "device", "threads", "init")}}
-    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items() if k != "max_epochs"}
+    # the plain loss (near_smoothing 0) keeps the fingerprint of the runs before the key existed
+    fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items()
+                                      if k != "max_epochs" and not (k == "near_smoothing" and not v)}
     return fingerprint
 
 

@@ -69,6 +69,14 @@ class TrainConfig:
     #: plateau schedule starts once it is over. Early large steps let the decoder settle on the programs'
     #: statistics before the encoder's signal arrives (issue 14)
     warmup_steps: int = 0
+    #: a near miss costs less than a far one: the share of each target token's probability spread over the
+    #: tokens one grid step from it (numeric parameters; :func:`plad.domains.grammar.near_targets`, issue 58);
+    #: 0: plain cross-entropy, the loss of every run before it
+    near_smoothing: float = 0.0
+
+    def __post_init__(self) -> None:   # ValueError: plad.config.build names the file and the key
+        if not 0.0 <= self.near_smoothing < 1.0:
+            raise ValueError(f"near_smoothing {self.near_smoothing}: expected 0 <= near_smoothing < 1")
 
 
 def _rng_state() -> dict:
@@ -249,6 +257,17 @@ def train_step(model: PLADNet, opt: torch.optim.Optimizer, step_loss: StepLoss, 
     return loss.detach(), acc.detach()
 
 
+def _own_loss(model: PLADNet, domain: str, near_smoothing: float) -> Callable[[PLADNet, Batch], Any]:
+    """The model's own loss, against :func:`plad.domains.grammar.near_targets` when ``near_smoothing`` > 0."""
+    if not near_smoothing:
+        return lambda m, b: m.loss(*b)
+    from plad.domains import get_domain
+    from plad.domains.grammar import near_targets
+
+    soft = near_targets(get_domain(domain).tokens.tokens, near_smoothing).to(next(model.parameters()).device)
+    return lambda m, b: m.loss(*b, soft=soft)
+
+
 def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
         validate: Callable[[PLADNet], dict[str, float]], cfg: TrainConfig, out_dir: str | Path,
         setup: FitSetup) -> LoopResult:
@@ -271,7 +290,7 @@ def fit(model: PLADNet, batches: Callable[[int], Iterator[Batch]],
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
         opt, mode="max" if objective.higher_is_better else "min", factor=cfg.lr_factor, patience=cfg.lr_patience,
         threshold=cfg.min_delta, threshold_mode="abs", min_lr=cfg.min_lr)
-    step_loss = dist.data_parallel(model, setup.loss_fn or (lambda m, b: m.loss(*b)))
+    step_loss = dist.data_parallel(model, setup.loss_fn or _own_loss(model, domain, cfg.near_smoothing))
     seed = torch.initial_seed()   # the caller's seed, before a resume restores the RNG state
 
     def epoch(unit: int, remaining: Callable[[], float]) -> Unit:

@@ -340,13 +340,20 @@ class PLADNet(nn.Module):
         return nll, logits.argmax(-1) == target, valid
 
     def loss(self, shapes: torch.Tensor, programs: torch.Tensor, lengths: torch.Tensor,
-             prefix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+             prefix: torch.Tensor | None = None, soft: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean token cross-entropy and token accuracy of (shape, program) pairs.
 
-        programs (N, L) long right-padded (any value past ``lengths``); lengths (N,).
+        programs (N, L) long right-padded (any value past ``lengths``); lengths (N,). ``soft`` (V, V): the
+        target distribution of each token (row), e.g. :func:`plad.domains.grammar.near_targets`; the loss is
+        then the cross-entropy against ``soft[token]`` (None: against the token itself).
         """
         if prefix is None:
             prefix = self.encode(shapes)
+        if soft is not None:
+            logits, target, valid = self.teacher_forced(prefix, programs, lengths)
+            nll = -(soft[target] * F.log_softmax(logits, -1)).sum(-1)            # (N, L)
+            loss = (nll * valid).sum() / valid.sum()
+            return loss, ((logits.argmax(-1) == target) & valid).sum().float() / valid.sum()
         nll, correct, valid = self.token_nll(prefix, programs, lengths)
         loss = (nll * valid).sum() / valid.sum()
         acc = (correct & valid).sum().float() / valid.sum()

@@ -14,37 +14,10 @@ from collections.abc import Sequence
 
 import torch
 
+from plad.domains.grammar import near_matrix
 from plad.model.network import PLADNet
 
-
-def near_matrix(tokens: Sequence) -> torch.Tensor:
-    """(V, V) bool: ``near[a, b]`` when token ``b`` is ``a`` or one grid step from it: the same kind, the same
-    non-numeric parameters, and every numeric parameter at most one place apart in the sorted values that
-    parameter takes over the kind's tokens (a token without parameters is near itself only)."""
-    V = len(tokens)
-    near = torch.eye(V, dtype=torch.bool)
-    by_kind: dict[str, list[int]] = {}
-    for i, t in enumerate(tokens):
-        if t.params:
-            by_kind.setdefault(t.kind, []).append(i)
-    for ids in by_kind.values():
-        params = [tokens[i].params for i in ids]
-        if len({len(p) for p in params}) != 1:
-            continue
-        columns = []                                    # per parameter: (len(ids),) rank or exact value code
-        for k in range(len(params[0])):
-            values = [p[k] for p in params]
-            numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-            # numeric: the value's place in order; otherwise any code will do (only equality counts)
-            ranks = {v: r for r, v in enumerate(sorted(set(values)) if numeric else dict.fromkeys(values))}
-            columns.append((numeric, torch.tensor([ranks[v] for v in values])))
-        ok = torch.ones(len(ids), len(ids), dtype=torch.bool)
-        for numeric, col in columns:
-            diff = (col[:, None] - col[None, :]).abs()
-            ok &= diff <= 1 if numeric else diff == 0
-        index = torch.tensor(ids)
-        near[index[:, None], index[None, :]] = ok
-    return near
+__all__ = ["kind_gaps", "labelled_batch", "main", "near_matrix"]
 
 
 @torch.no_grad()
