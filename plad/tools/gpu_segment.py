@@ -11,16 +11,16 @@ tree (the shipped networks included) and gives back at most eight small files. T
 2. it continues the domain's shipped pretrained network on them with the pretrain stage's own function
    (:func:`plad.learn.pretrain.pretrain`: ``init: shipped``, ``continue_lr: restart``, resumable, the segment
    recorded in the checkpoint's provenance) for ``--minutes`` of training, on the GPU in bf16 where it computes
-   it natively, its synthetic programs executed by ``--loader-workers`` processes (ShapeAssembly's executor runs
-   in Python on the CPU), the rest of the settings the params file's ``pretrain.<domain>`` section (and
-   ``--set`` overrides, as a stage takes them);
+   it natively, its synthetic programs executed by ``--loader-workers`` processes (where the
+   domain's executor runs on the CPU; default: the params' ``loader_workers``), the rest of the settings the
+   params file's ``pretrain.<domain>`` section (and ``--set`` overrides, as a stage takes them);
 3. it copies what a later session ships into ``--out``: ``last.pt`` (the whole state: ``plad models
    ship-pretrained DOMAIN last.pt`` ships it), ``summary.json``, ``history.csv``, ``provenance.json`` and
    ``synthetic.json``.
 
-The prepared command (docs/gpu.md; at most ten minutes a call):
-``python -m plad.tools.gpu_segment shapeassembly --out $OUT/sa --minutes 7``, with ``carry:
-["data/prepared/shapeassembly.npz"]`` for the real validation shapes. CI runs it on the CPU as a dry run of a
+The prepared command (docs/gpu.md, section 1b, names the domain and the workers; at most ten minutes a call):
+``python -m plad.tools.gpu_segment DOMAIN --out $OUT/<name> --minutes 7 --loader-workers 14``, with ``carry:
+["data/prepared/<domain>.npz"]`` for the real validation shapes. CI runs it on the CPU as a dry run of a
 few seconds (tests/plad/tools/test_gpu_segment.py), with MLflow, DVC and Prefect made unimportable, as they
 are there: the command that failed a lease before had never run (docs/pretraining.md).
 """
@@ -120,8 +120,7 @@ def segment_config(params: Path, profile: str | None, domain: str, sets: list[st
     cfg = build(section_class("pretrain"), raw, name, str(params))
     train = replace(cfg.train, batch_size=a.batch_size or cfg.train.batch_size, max_epochs=a.max_epochs,
                     patience=a.max_epochs, lr=a.lr if a.lr is not None else cfg.train.lr)
-    workers = a.loader_workers if a.loader_workers is not None else (
-        max(1, (os.cpu_count() or 2) - 2) if domain == "shapeassembly" else 0)
+    workers = a.loader_workers if a.loader_workers is not None else cfg.loader_workers
     return replace(cfg, device=a.device, precision=a.precision, init="shipped", continue_lr="restart",
                    max_minutes=a.minutes, loader_workers=workers, threads=a.threads, train=train,
                    real_val_shapes=cfg.real_val_shapes if a.real_val else 0)
@@ -169,8 +168,10 @@ def run(a: argparse.Namespace) -> dict:
 
 
 def parser() -> argparse.ArgumentParser:
+    from plad.domains import domain_names
+
     p = argparse.ArgumentParser(prog="python -m plad.tools.gpu_segment", description=__doc__.splitlines()[0])
-    p.add_argument("domain", choices=["csg2d", "csg3d", "shapeassembly"])
+    p.add_argument("domain", choices=domain_names())
     p.add_argument("--out", required=True, help="where the results are copied (on a lent machine: under $OUT)")
     p.add_argument("--work", default="/tmp/plad_gpu_segment", help="layout root of the run (programs, state)")
     p.add_argument("--params", default="params.yaml")
@@ -189,7 +190,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--loader-workers", type=int, default=None,
-                   help="program-executing processes (default: ShapeAssembly all cores but two, CSG none)")
+                   help="program-executing processes (default: the params' loader_workers; 0: executed in the "
+                        "training process, on its device)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads of the training process")
     p.add_argument("--no-real-val", dest="real_val", action="store_false",
                    help="no real validation shapes (when data/prepared/<domain>.npz did not travel)")
