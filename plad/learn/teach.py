@@ -57,6 +57,19 @@ class AugmentConfig:
 
 
 @dataclass
+class GrowConfig:
+    """Larger sizes for the starting network (:func:`plad.model.grow.grow`: the same function, more capacity);
+    null: the start's own size."""
+
+    enc_channels: list[int] | None = None
+    n_layers: int | None = None
+    dim_ff: int | None = None
+
+    def asked(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass
 class TeachConfig:
     """Params ``teach.<domain>`` (stage ``teach@<domain>``)."""
 
@@ -83,6 +96,8 @@ class TeachConfig:
     #: weights of the batch sources (st, lest, aug); a source of weight 0 is left out
     sources: dict[str, float] = field(default_factory=lambda: {"st": 1.0, "lest": 1.0, "aug": 0.0})
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    #: grow the starting network before teaching (issue 58: the network's size at equal steps from the same start)
+    grow: GrowConfig = field(default_factory=GrowConfig)
     #: wall-clock safety net in minutes (null: none): the epochs fix the work
     max_minutes: float | None = None
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -177,6 +192,9 @@ def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int)
     # the plain loss (near_smoothing 0) keeps the fingerprint of the runs before the key existed
     fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items()
                                       if k != "max_epochs" and not (k == "near_smoothing" and not v)}
+    # likewise a start that is not grown
+    if not cfg.grow.asked():
+        fingerprint["config"].pop("grow")
     return fingerprint
 
 
@@ -201,6 +219,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     from plad.learn.rounds import mean_metric
     from plad.learn.train import FitSetup, fit
     from plad.model.checkpoint import load_model, network_digest
+    from plad.model.grow import grow
     from plad.provenance import stamp
     from plad.rewrite.pool import pad_programs
 
@@ -225,6 +244,12 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     torch.manual_seed(cfg.seed)
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
+    if cfg.grow.asked():   # after seeding: the new weights are drawn from torch's generator
+        try:
+            model = grow(model, **cfg.grow.asked())
+        except ValueError as err:
+            raise ConfigError(f"{where}.grow: {err}") from None
+        log(f"teach {cfg.domain}: the start grown to " + ", ".join(f"{k} {v}" for k, v in cfg.grow.asked().items()))
 
     out = layout.finetune_dir(cfg.domain, TAUGHT)
     out.mkdir(parents=True, exist_ok=True)
@@ -270,6 +295,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
                "fit_labels_mean": None if label_fit is None else round(label_fit, 6),
                "fit_shapes": int(len(fit_idx)), "val_shapes": int(len(val)),
                "sources": weights, "init": str(cfg.init), "init_network_sha256": network_digest(start),
+               **({"grow": cfg.grow.asked()} if cfg.grow.asked() else {}),
                "max_epochs": cfg.train.max_epochs, "steps": result.units * cfg.train.steps_per_epoch,
                "history": [{k: v for k, v in r.items() if k in ("epoch", "val", "fit", "fit_wide", "train_loss",
                                                                  "seconds")} for r in result.history],

@@ -179,3 +179,33 @@ def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):
         teach(_teach_cfg(init, sources={"st": 0.0}), init, layout)
     with pytest.raises(DataError, match="no labels"):
         teach(_teach_cfg(init), init, layout)
+
+
+def test_a_grown_start_begins_where_the_start_is_and_trains_the_larger_network(tmp_path, tiny_checkpoint):
+    """teach.<domain>.grow: the start grown before the first step (the same function: the epoch-0 row equals the
+    ungrown run's), the checkpoints carry the larger network, a rerun resumes it, and a size that would shrink
+    is a config error naming the key."""
+    from plad.model.checkpoint import load_model
+
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    small, _ = load_model(init)
+    wider = [2 * c for c in small.cfg.enc_channels]
+    runs = {}
+    for name, kw in (("plain", {}), ("grown", {"grow": {"enc_channels": wider, "n_layers": small.cfg.n_layers + 1}})):
+        layout = sampled_project(tmp_path / name)
+        label_project(layout)
+        summary = teach(_teach_cfg(init, **kw), init, layout, log=lambda line: None)
+        with open(layout.finetune_dir("csg2d", "taught") / "history.csv", newline="") as fh:
+            runs[name] = (summary, list(csv.DictReader(fh)), layout)
+    (plain, plain_rows, _), (grown, grown_rows, layout) = runs["plain"], runs["grown"]
+    for key in ("val", "fit", "fit_wide"):
+        assert float(grown_rows[0][key]) == pytest.approx(float(plain_rows[0][key]), abs=1e-6)
+    assert "grow" not in plain and grown["grow"] == {"enc_channels": wider, "n_layers": small.cfg.n_layers + 1}
+    best, _ = load_model(layout.finetune_dir("csg2d", "taught") / "best.pt")
+    assert list(best.cfg.enc_channels) == wider and best.cfg.n_layers == small.cfg.n_layers + 1
+    more = {"batch_size": 4, "steps_per_epoch": 2, "max_epochs": 3, "patience": 5}
+    again = teach(_teach_cfg(init, train=more, grow={"enc_channels": wider, "n_layers": small.cfg.n_layers + 1}),
+                  init, layout, log=lambda line: None)
+    assert again["units"] == 3
+    with pytest.raises(ConfigError, match=rf"teach\.csg2d\.grow: dim_ff {small.cfg.dim_ff - 1}: the network has"):
+        teach(_teach_cfg(init, grow={"dim_ff": small.cfg.dim_ff - 1}), init, layout, log=lambda line: None)
