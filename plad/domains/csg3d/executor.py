@@ -188,12 +188,25 @@ def render_primitives(params: torch.Tensor, ellipsoid: torch.Tensor) -> torch.Te
     return out
 
 
+#: batches of at most this many programs run one program at a time on the CPU (:meth:`Executor._run_each`):
+#: a search executes most of its programs in batches of 1-8, where the batched path's ~15 tensor operations
+#: per stack step cost more than the work (bench.search_speed)
+SMALL_BATCH = 256
+#: most primitive grids kept by the per-program path (4 KiB each): a search renders the same primitives
+#: again and again, in the variants of one program
+PRIMITIVE_CACHE = 8192
+
+
 class Executor:
     """Executes padded batches of csg3d token programs."""
 
-    def __init__(self, table: TokenTable | None = None, chunk: int = 1024):
+    def __init__(self, table: TokenTable | None = None, chunk: int = 1024, small_batch: int = SMALL_BATCH):
         self.table = table or token_table()
         self.chunk = chunk
+        #: batches up to this size on the CPU run program by program (0: always batched); the same bits
+        self.small_batch = small_batch
+        self._primitives: dict[tuple[int, ...], np.ndarray] = {}
+        self._steps: tuple[list[int], list[int]] | None = None
 
     def run_packed(self, programs: torch.Tensor, check_degenerate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """programs (B, L) long -> (words int32 (B, 32, 32), degenerate (B,) bool).
@@ -206,11 +219,85 @@ class Executor:
         B = programs.shape[0]
         words = torch.empty(B, RES, RES, dtype=torch.int32, device=programs.device)
         flags = torch.zeros(B, dtype=torch.bool, device=programs.device)
+        if programs.device.type == "cpu" and 0 < B <= self.small_batch:
+            each = self._run_each(programs, check_degenerate)
+            if each is not None:
+                return each
         for start in range(0, B, self.chunk):
             w, f = self._run(programs[start:start + self.chunk].clamp(min=0), check_degenerate)
             words[start:start + self.chunk] = w
             flags[start:start + self.chunk] = f
         return words, flags
+
+    def _run_each(self, programs: torch.Tensor, check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """:meth:`run_packed` one program at a time in numpy (CPU): the same stack machine on (1024,) int32 words,
+        so the same bits, without the batched path's per-step tensor operations; primitives come from a cache of
+        rendered grids (the misses rendered together by :func:`render_primitives`). None where a row does not
+        end within its length (the batched path defines what such a row gives)."""
+        if self._steps is None:
+            T = _tables(torch.device("cpu"))
+            self._steps = (T["delta"].tolist(), T["code"].tolist())
+        delta, code = self._steps
+        rows = programs.clamp(min=0).tolist()
+        parsed: list[list[tuple[int, ...] | int]] = []   # per program: structural steps, primitives as keys
+        cache, missing = self._primitives, {}
+        if len(cache) >= PRIMITIVE_CACHE:   # (between batches: a batch finds every grid it parsed as cached)
+            cache.clear()
+        for row in rows:
+            steps: list[tuple[int, ...] | int] = []
+            need, i, n = 1, 0, len(row)
+            while need > 0:
+                if i >= n:
+                    return None
+                tok = row[i]
+                need += delta[tok]
+                if code[tok] == _PRIM:
+                    key = tuple(row[i:i + N_PARAMS + 1])
+                    if len(key) <= N_PARAMS:       # parameters cut off by the row's end
+                        return None
+                    if key not in cache:
+                        missing[key] = None
+                    steps.append(key)
+                elif code[tok] != _NOOP:
+                    steps.append(code[tok])
+                i += 1
+            parsed.append(steps)
+        if missing:
+            keys = list(missing)
+            for key, grid in zip(keys, self._render(torch.tensor(keys, dtype=torch.long))):
+                grid.flags.writeable = False                      # shared by every program that draws it
+                cache[key] = grid
+        out = np.empty((len(rows), _WORDS), dtype=np.int32)
+        flags = np.zeros(len(rows), dtype=bool)
+        for r, steps in enumerate(parsed):
+            stack: list[np.ndarray] = []
+            for step in reversed(steps):
+                if isinstance(step, tuple):
+                    stack.append(cache[step])
+                    continue
+                a = stack.pop()                                     # the first operand: the top
+                b = stack.pop()
+                if step == _UNION:
+                    res = a | b
+                elif step == _INTER:
+                    res = a & b
+                else:
+                    res = a & ~b
+                if check_degenerate and not flags[r]:
+                    flags[r] = (np.array_equal(res, a) or np.array_equal(res, b) or not res.any())
+                stack.append(res)
+            out[r] = stack[-1]
+        return torch.from_numpy(out).reshape(-1, RES, RES), torch.from_numpy(flags)
+
+    @staticmethod
+    def _render(keys: torch.Tensor) -> np.ndarray:
+        """keys (K, 7) long: a primitive token and its parameter tokens -> int32 (K, 1024) grids."""
+        T = _tables(keys.device)
+        grids = render_primitives(T["value"][keys[:, 1:]], T["ell"][keys[:, 0]]).reshape(-1, _WORDS)
+        fixed = T["fixed"][keys[:, 0]]
+        grids[fixed == 1] = 0
+        grids[fixed == 2] = -1
+        return grids.numpy()
 
     def _run(self, programs: torch.Tensor, check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor]:
         T = _tables(programs.device)

@@ -203,3 +203,54 @@ def test_import_does_not_touch_cuda():
             "get_domain('csg3d'); print(torch.cuda.is_initialized())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _with_pseudo_primitives(programs: list[list[int]], seed: int) -> list[list[int]]:
+    """Copies of ``programs`` with random primitives drawing the empty or the full grid (rewriting's templates)."""
+    from plad.domains.csg3d.executor import EMPTY_PRIMITIVE, FULL_PRIMITIVE
+
+    rng = np.random.default_rng(seed)
+    prims = {TABLE.index("cuboid"), TABLE.index("ellipsoid")}
+    out = []
+    for ids in programs:
+        ids = list(ids)
+        for i, t in enumerate(ids):
+            if t in prims and rng.random() < 0.3:
+                ids[i] = EMPTY_PRIMITIVE if rng.random() < 0.5 else FULL_PRIMITIVE
+        out.append(ids)
+    return out
+
+
+@pytest.mark.parametrize("check_degenerate", [False, True])
+def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate, monkeypatch):
+    """Batches up to ``small_batch`` programs run one program at a time in numpy (what a search runs): the same
+    words and degenerate flags as the batched path, for sampled programs, random grammar programs, rewriting's
+    pseudo primitives and any padding, through a primitive cache that fills, is cleared and is reused."""
+    import plad.domains.csg3d.executor as ex
+
+    monkeypatch.setattr(ex, "PRIMITIVE_CACHE", 500)     # small: the cache is cleared during the test
+    programs = DOMAIN.sample(200, np.random.default_rng(3)) + masked_rollouts(DOMAIN, 150, seed=9)
+    programs += _with_pseudo_primitives(programs[:120], seed=4)
+    batched, each = Executor(TABLE, small_batch=0), Executor(TABLE)
+    calls = []
+    monkeypatch.setattr(Executor, "_run", lambda self, *a, _orig=Executor._run: calls.append(1) or _orig(self, *a))
+    for pad in (0, -1, TABLE.index("union")):
+        padded = pad_programs(programs, pad=pad)
+        want_words, want_flags = batched.run_packed(padded, check_degenerate=check_degenerate)
+        assert calls and want_flags.any() == check_degenerate
+        calls.clear()
+        for size in (1, 7, 64, 256):
+            for start in range(0, len(padded), size):
+                words, flags = each.run_packed(padded[start:start + size], check_degenerate=check_degenerate)
+                assert torch.equal(words, want_words[start:start + size])
+                assert torch.equal(flags, want_flags[start:start + size])
+        assert not calls                                # every batch ran program by program
+    assert 0 < len(each._primitives) <= 500 + 256 * 12
+
+
+def test_a_row_that_does_not_end_runs_batched():
+    """A row whose program does not end within its length: the per-program path leaves it to the batched one."""
+    ids = DOMAIN.parse("union cuboid 16 16 16 8 8 8 ellipsoid 10 10 10 6 6 6")
+    cut = torch.tensor([ids[:-3], ids[:-3]])
+    assert Executor(TABLE)._run_each(cut, False) is None
+    assert torch.equal(Executor(TABLE).run_packed(cut)[0], Executor(TABLE, small_batch=0).run_packed(cut)[0])
