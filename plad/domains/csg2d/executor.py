@@ -10,6 +10,7 @@ stack lives in a (B, S, 64) int64 tensor.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from plad.domains.csg2d.tokens import CANVAS, render_primitive, token_table
@@ -47,11 +48,21 @@ def unpack(words: torch.Tensor) -> torch.Tensor:
     return out.view(torch.uint8).view(torch.bool).reshape(*words.shape, CANVAS)
 
 
+#: batches of at most this many programs run one program at a time on the CPU (:meth:`Executor._run_each`): a
+#: search executes most of its programs in batches of 1-63, where the batched path's tensor operations per token
+#: cost more than the work (bench.search_speed)
+SMALL_BATCH = 512
+_UNION, _INTER, _DIFF = 0, 1, 2
+
+
 class Executor:
     """Executes padded batches of token ids of a :class:`TokenTable` of 2D CSG."""
 
-    def __init__(self, table: TokenTable | None = None):
+    def __init__(self, table: TokenTable | None = None, small_batch: int = SMALL_BATCH):
         self.table = table or token_table()
+        #: batches up to this size on the CPU run program by program (0: always batched); the same bits
+        self.small_batch = small_batch
+        self._each: tuple[list[int], list[int], list[int]] | None = None
         V = len(self.table)
         self.max_stack = self.table.max_len // 2 + 1
         kind = torch.zeros(V, dtype=torch.long)
@@ -88,6 +99,7 @@ class Executor:
                     "masks": torch.cat([c["masks"], torch.zeros(K, 2, dtype=torch.long)]),
                     "bitmaps": torch.cat([c["bitmaps"], pack(canvases)])}
         out._dev = {}
+        out.small_batch, out._each = self.small_batch, None
         return out
 
     @property
@@ -109,6 +121,10 @@ class Executor:
         operation). Each row must be a valid program ending with ``$``;
         whatever follows ``$`` is ignored.
         """
+        if programs.device.type == "cpu" and 0 < programs.shape[0] <= self.small_batch:
+            each = self._run_each(programs, check_degenerate)
+            if each is not None:
+                return each
         T = self._tables(programs.device)
         kinds = T["kind"][programs]                                            # (B, L)
         # tokens before the first $; rows sorted longest first so that at step t
@@ -124,6 +140,49 @@ class Executor:
             words[rows] = w
             flags[rows] = f
         return words, flags
+
+    def _run_each(self, programs: torch.Tensor, check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """:meth:`run_packed` one program at a time (CPU): a canvas as one 4,096-bit Python integer (bit 64 r + c
+        is pixel [r, c], the packed words' bits in little-endian order), so an operator is one integer operation
+        and the bits are the batched path's. None where a row is not a well-formed program (a token that neither
+        draws nor operates before its ``$``, an operator without two operands, more than one canvas left): the
+        batched path defines what such a row gives."""
+        if self._each is None:
+            words = self._cpu["bitmaps"].numpy()
+            masks = self._cpu["masks"].tolist()
+            op = {(-1, -1): _UNION, (0, 0): _INTER, (-1, 0): _DIFF}
+            self._each = (self._cpu["kind"].tolist(), [op.get(tuple(m), -1) for m in masks],
+                          [int.from_bytes(w.astype("<i8").tobytes(), "little") for w in words])
+        kinds, ops, canvases = self._each
+        n_tokens = len(kinds)
+        results, flags = [], []
+        for row in programs.tolist():
+            stack: list[int] = []
+            degenerate = False
+            for tok in row:
+                if not 0 <= tok < n_tokens:
+                    return None
+                kind = kinds[tok]
+                if kind == _DRAW:
+                    stack.append(canvases[tok])
+                    continue
+                if kind == _STOP:
+                    break
+                if kind != _OP or len(stack) < 2:
+                    return None
+                b = stack.pop()                                   # the top
+                a = stack.pop()                                   # below it: the first operand
+                code = ops[tok]
+                res = a | b if code == _UNION else a & b if code == _INTER else a & ~b
+                degenerate = degenerate or res == a or res == b
+                stack.append(res)
+            if len(stack) != 1:
+                return None
+            results.append(stack[0])
+            flags.append(degenerate and check_degenerate)
+        data = b"".join(c.to_bytes(CANVAS * 8, "little") for c in results)
+        words = torch.from_numpy(np.frombuffer(data, dtype="<i8").astype(np.int64).reshape(-1, CANVAS))
+        return words, torch.tensor(flags, dtype=torch.bool)
 
     def _run_sorted(self, programs: torch.Tensor, kinds: torch.Tensor, lengths: list[int],
                     check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor]:

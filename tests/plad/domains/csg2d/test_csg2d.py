@@ -140,3 +140,51 @@ def test_fuzzed_program_texts_never_crash():
         valid += 1
         assert np.array_equal(DOMAIN.execute(torch.tensor([ids]))[0].numpy(), render(DOMAIN.format(ids)))
     assert valid > 0
+
+
+@pytest.mark.parametrize("check_degenerate", [False, True])
+def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate, monkeypatch):
+    """Batches up to ``small_batch`` programs run one program at a time (a canvas as one Python integer): the
+    same words and degenerate flags as the batched path, for sampled programs, random grammar programs and
+    rewriting's extended executor (pseudo draws of the empty and the full canvas), in batches of 1 to 512."""
+    from plad.domains.csg2d.executor import Executor
+    from tests.grammar import masked_rollouts
+
+    programs = DOMAIN.sample(300, np.random.default_rng(3)) + masked_rollouts(DOMAIN, 200, seed=9)
+    stop = DOMAIN.tokens.index("$")
+    padded = pad_programs(programs, pad=stop)
+    canvases = torch.zeros(2, 64, 64, dtype=torch.bool)
+    canvases[1] = True
+    draws = [v for v, t in enumerate(DOMAIN.tokens.tokens) if t.kind == "draw"]
+    templates = padded[:150].clone()
+    rng = np.random.default_rng(4)
+    for r in range(len(templates)):
+        for c in range(templates.shape[1]):
+            if int(templates[r, c]) in draws and rng.random() < 0.3:
+                templates[r, c] = len(DOMAIN.tokens) + int(rng.integers(2))
+    calls = []
+    monkeypatch.setattr(Executor, "_run_sorted",
+                        lambda self, *a, _orig=Executor._run_sorted: calls.append(1) or _orig(self, *a))
+    for plain, batch in ((Executor(), padded), (Executor().extended(canvases), templates)):
+        batched = Executor(small_batch=0)
+        batched = batched if batch is padded else batched.extended(canvases)
+        want_words, want_flags = batched.run_packed(batch, check_degenerate=check_degenerate)
+        assert calls and bool(want_flags.any()) == check_degenerate
+        calls.clear()
+        for size in (1, 5, 64, 512):
+            for start in range(0, len(batch), size):
+                words, flags = plain.run_packed(batch[start:start + size], check_degenerate=check_degenerate)
+                assert torch.equal(words, want_words[start:start + size])
+                assert torch.equal(flags, want_flags[start:start + size])
+        assert not calls                                 # every batch ran program by program
+
+
+def test_a_malformed_row_runs_batched():
+    from plad.domains.csg2d.executor import Executor
+
+    ids = DOMAIN.parse("c(32,32,24)s(32,32,12)+$")
+    stop = DOMAIN.tokens.index("$")
+    for bad in (ids[:2] + [stop], ids[:1] + ids[2:3] + [stop], [ids[2], stop]):   # two canvases left; no operand
+        row = torch.tensor([bad])
+        assert Executor()._run_each(row, False) is None
+        assert torch.equal(Executor().run_packed(row)[0], Executor(small_batch=0).run_packed(row)[0])
