@@ -141,6 +141,10 @@ class Executor:
             flags[rows] = f
         return words, flags
 
+    def __getstate__(self) -> dict:
+        # the per-program path's integers are rebuilt on first use in another process
+        return {**self.__dict__, "_each": None}
+
     def _run_each(self, programs: torch.Tensor, check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
         """:meth:`run_packed` one program at a time (CPU): a canvas as one 4,096-bit Python integer (bit 64 r + c
         is pixel [r, c], the packed words' bits in little-endian order), so an operator is one integer operation

@@ -229,6 +229,11 @@ class Executor:
             flags[start:start + self.chunk] = f
         return words, flags
 
+    def __getstate__(self) -> dict:
+        # a copy sent to another process (a worker pool) starts with an empty primitive cache: up to 32 MiB of
+        # grids it would rebuild anyway is not worth pickling
+        return {**self.__dict__, "_primitives": {}, "_steps": None}
+
     def _run_each(self, programs: torch.Tensor, check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
         """:meth:`run_packed` one program at a time in numpy (CPU): the same stack machine on (1024,) int32 words,
         so the same bits, without the batched path's per-step tensor operations; primitives come from a cache of

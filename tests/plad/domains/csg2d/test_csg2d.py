@@ -188,3 +188,16 @@ def test_a_malformed_row_runs_batched():
         row = torch.tensor([bad])
         assert Executor()._run_each(row, False) is None
         assert torch.equal(Executor().run_packed(row)[0], Executor(small_batch=0).run_packed(row)[0])
+
+
+def test_a_pickled_executor_rebuilds_its_integers():
+    import pickle
+
+    from plad.domains.csg2d.executor import Executor
+
+    executor = Executor()
+    programs = pad_programs(DOMAIN.sample(20, np.random.default_rng(5)), pad=DOMAIN.tokens.index("$"))
+    want = executor.run_packed(programs)[0]
+    copy = pickle.loads(pickle.dumps(executor))
+    assert copy._each is None and executor._each is not None
+    assert torch.equal(copy.run_packed(programs)[0], want)

@@ -254,3 +254,15 @@ def test_a_row_that_does_not_end_runs_batched():
     cut = torch.tensor([ids[:-3], ids[:-3]])
     assert Executor(TABLE)._run_each(cut, False) is None
     assert torch.equal(Executor(TABLE).run_packed(cut)[0], Executor(TABLE, small_batch=0).run_packed(cut)[0])
+
+
+def test_a_pickled_executor_leaves_its_primitive_cache_behind():
+    import pickle
+
+    executor = Executor(TABLE)
+    programs = pad_programs(DOMAIN.sample(20, np.random.default_rng(5)))
+    want = executor.run_packed(programs)[0]
+    assert executor._primitives
+    copy = pickle.loads(pickle.dumps(executor))
+    assert copy._primitives == {} and executor._primitives
+    assert torch.equal(copy.run_packed(programs)[0], want)
