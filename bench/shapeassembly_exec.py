@@ -12,7 +12,7 @@ The original is the frozen copy of the executor and voxelizer before they were m
    grids, unique counts, owners and ok flags are identical;
 2. for each effort of ``--search``: the whole search on the same shapes with ``ShapeAssembly.run_batch``
    replaced by the original vs as it is, alternately; seconds, ratio and whether the programs found are
-   identical.
+   identical; then the same for the refinement of the shipped network's programs (beam 10, decoded once).
 
 The last line is ``ratio <original/fast>`` of the replayed batches (higher is better).
 """
@@ -80,10 +80,30 @@ def time_batches(domain, batches, repeats: int) -> tuple[float, float, bool]:
     return best_old, best_new, identical
 
 
-def time_search(domain, targets: torch.Tensor, effort: str, repeats: int = 1) -> tuple[float, float, bool]:
+def network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
+    """The shipped network's best-of-beam program per shape (beam 10), or None without a shipped network."""
+    from plad.model.checkpoint import load_model
+    from plad.model.decode import infer_programs
+    from plad.shipped import shipped_model
+
+    shipped = shipped_model(domain.name)
+    if shipped is None:
+        return None
+    model, _ = load_model(shipped.checkpoint, expect_domain=domain.name)
+    return [list(p) for p in infer_programs(model, domain, targets, beam=10).programs]
+
+
+def time_search(domain, targets: torch.Tensor, effort: str, repeats: int = 1,
+                starts: list[list[int]] | None = None) -> tuple[float, float, bool]:
     """Best seconds of one search with the original run_batch and with the fast one (alternating), and
-    whether they find the same programs with the same values."""
-    from plad.rewrite.driver import search, search_config
+    whether they find the same programs with the same values; with ``starts``, the refinement of those
+    programs (network + refinement) instead of search from scratch."""
+    from plad.rewrite.driver import refine, search, search_config
+
+    cfg = search_config(domain, effort=effort)
+
+    def run():
+        return search(domain, targets, cfg) if starts is None else refine(domain, starts, targets, cfg.refine)
 
     original = _original()
     own = ShapeAssembly.run_batch
@@ -94,13 +114,13 @@ def time_search(domain, targets: torch.Tensor, effort: str, repeats: int = 1) ->
             programs.tolist() if isinstance(programs, torch.Tensor) else programs)
         try:
             start = time.perf_counter()
-            old = search(domain, targets, search_config(domain, effort=effort))
+            old = run()
             best_old = min(best_old, time.perf_counter() - start)
         finally:
             ShapeAssembly.run_batch = own
         fast_cuboids.clear_cache()
         start = time.perf_counter()
-        new = search(domain, targets, search_config(domain, effort=effort))
+        new = run()
         best_new = min(best_new, time.perf_counter() - start)
         identical &= old.programs == new.programs and torch.equal(old.values, new.values)
     return best_old, best_new, identical
@@ -129,10 +149,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"run_batch on the {len(batches)} batches ({n} programs) of one {args.effort} search on "
           f"{args.shapes} test shapes, torch threads {torch.get_num_threads()}")
     print(f"identical: {identical}")
+    starts = network_programs(domain, targets) if args.search else None
     for effort in [e for e in args.search.split(",") if e]:
         s_old, s_new, s_same = time_search(domain, targets, effort)
         print(f"search effort {effort}: original {s_old:.2f} s, fast {s_new:.2f} s, ratio {s_old / s_new:.2f}, "
               f"identical: {s_same}")
+        if starts is not None:
+            s_old, s_new, s_same = time_search(domain, targets, effort, starts=starts)
+            print(f"network + refinement effort {effort}: original {s_old:.2f} s, fast {s_new:.2f} s, "
+                  f"ratio {s_old / s_new:.2f}, identical: {s_same}")
     print(f"original {old:.2f} s ({n / old:.0f} programs/s)")
     print(f"fast {new:.2f} s ({n / new:.0f} programs/s)")
     print(f"ratio {old / new:.2f}")

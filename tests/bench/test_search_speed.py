@@ -29,6 +29,16 @@ def test_search_and_refinement_are_identical_with_the_speedups_off_and_on(name):
     assert bits._BITWISE_COUNT is not None       # the baseline's switch is put back
 
 
+def test_the_baseline_runs_every_batch_through_the_batched_executors_and_puts_them_back():
+    from plad.domains.csg2d.executor import SMALL_BATCH as SMALL_2D
+    from plad.domains.csg3d.executor import SMALL_BATCH as SMALL_3D
+
+    executors = [get_domain("csg2d").executor, get_domain("csg2d").rewrite._extended, get_domain("csg3d").executor]
+    with search_speed._baseline():
+        assert [e.small_batch for e in executors] == [0, 0, 0] and bits._BITWISE_COUNT is None
+    assert [e.small_batch for e in executors] == [SMALL_2D, SMALL_2D, SMALL_3D]
+
+
 def test_a_changed_program_or_value_is_not_identical():
     class R:
         def __init__(self, programs, values):
