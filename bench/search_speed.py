@@ -37,15 +37,15 @@ def _scalar_popcount() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _batched_csg3d() -> Iterator[None]:
-    """Every 3D CSG batch through the batched stack machine, as before the per-program path for small batches
+    """Every 3D CSG batch through the batched stack machine, as before the per-program path
     (its primitive cache emptied, so the new path is timed with the cache it builds itself)."""
     executor = get_domain("csg3d").executor
-    saved, executor.small_batch = executor.small_batch, 0
+    saved, executor.per_program = executor.per_program, False
     executor._primitives.clear()
     try:
         yield
     finally:
-        executor.small_batch = saved
+        executor.per_program = saved
         executor._primitives.clear()
 
 
@@ -55,22 +55,37 @@ def _batched_csg2d() -> Iterator[None]:
     and the rewrite space's extended copy of it (pseudo draws), made once per process."""
     domain = get_domain("csg2d")
     executors = (domain.executor, domain.rewrite._extended)
-    saved = [e.small_batch for e in executors]
+    saved = [e.per_program for e in executors]
     for e in executors:
-        e.small_batch = 0
+        e.per_program = False
     try:
         yield
     finally:
         for e, value in zip(executors, saved):
-            e.small_batch = value
+            e.per_program = value
+
+
+@contextlib.contextmanager
+def _reference_boxes() -> Iterator[None]:
+    """The insertion's residual boxes with the summed-volume table and box growing before they were made fast
+    (the frozen copy in tests/reference/boxes_v0.py)."""
+    from plad.domains import boxes
+    from tests.reference import boxes_v0
+
+    saved = boxes.prefix_sums, boxes.grow_box
+    boxes.prefix_sums, boxes.grow_box = boxes_v0.prefix_sums, boxes_v0.grow_box
+    try:
+        yield
+    finally:
+        boxes.prefix_sums, boxes.grow_box = saved
 
 
 #: each speedup by name, with the context that switches it off (the baseline runs with all of them off)
 SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "numpy popcount in the 2D and 3D screens": _scalar_popcount,
-    "3D CSG batches of up to 256 programs run one program at a time (numpy, cached primitives)": _batched_csg3d,
-    "2D CSG batches of up to 512 programs run one program at a time (a canvas as one Python integer)":
-        _batched_csg2d,
+    "3D CSG programs run one at a time on the CPU (numpy, cached primitives)": _batched_csg3d,
+    "2D CSG programs run one at a time on the CPU (a canvas as one Python integer)": _batched_csg2d,
+    "3D residual boxes: int32 summed-volume table, boxes grown face by face": _reference_boxes,
 }
 
 

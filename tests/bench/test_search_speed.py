@@ -30,13 +30,16 @@ def test_search_and_refinement_are_identical_with_the_speedups_off_and_on(name):
 
 
 def test_the_baseline_runs_every_batch_through_the_batched_executors_and_puts_them_back():
-    from plad.domains.csg2d.executor import SMALL_BATCH as SMALL_2D
-    from plad.domains.csg3d.executor import SMALL_BATCH as SMALL_3D
-
     executors = [get_domain("csg2d").executor, get_domain("csg2d").rewrite._extended, get_domain("csg3d").executor]
     with search_speed._baseline():
-        assert [e.small_batch for e in executors] == [0, 0, 0] and bits._BITWISE_COUNT is None
-    assert [e.small_batch for e in executors] == [SMALL_2D, SMALL_2D, SMALL_3D]
+        assert [e.per_program for e in executors] == [False] * 3 and bits._BITWISE_COUNT is None
+    assert [e.per_program for e in executors] == [True] * 3
+    from plad.domains import boxes
+    from tests.reference import boxes_v0
+
+    with search_speed._baseline():
+        assert boxes.grow_box is boxes_v0.grow_box
+    assert boxes.grow_box is not boxes_v0.grow_box
 
 
 def test_a_changed_program_or_value_is_not_identical():

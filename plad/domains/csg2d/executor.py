@@ -48,20 +48,20 @@ def unpack(words: torch.Tensor) -> torch.Tensor:
     return out.view(torch.uint8).view(torch.bool).reshape(*words.shape, CANVAS)
 
 
-#: batches of at most this many programs run one program at a time on the CPU (:meth:`Executor._run_each`): a
-#: search executes most of its programs in batches of 1-63, where the batched path's tensor operations per token
-#: cost more than the work (bench.search_speed)
-SMALL_BATCH = 512
+# On the CPU, programs run one at a time (:meth:`Executor._run_each`): a search executes most of its programs in
+# batches of 1-63, where the batched path's tensor operations per token cost more than the work, and one at a
+# time is also faster on sampled programs at every batch size measured (16-4,096: 3-6 us a program once its
+# integers are built, batched 8-166).
 _UNION, _INTER, _DIFF = 0, 1, 2
 
 
 class Executor:
     """Executes padded batches of token ids of a :class:`TokenTable` of 2D CSG."""
 
-    def __init__(self, table: TokenTable | None = None, small_batch: int = SMALL_BATCH):
+    def __init__(self, table: TokenTable | None = None, per_program: bool = True):
         self.table = table or token_table()
-        #: batches up to this size on the CPU run program by program (0: always batched); the same bits
-        self.small_batch = small_batch
+        #: on the CPU, run program by program (False: the batched path everywhere); the same bits
+        self.per_program = per_program
         self._each: tuple[list[int], list[int], list[int]] | None = None
         V = len(self.table)
         self.max_stack = self.table.max_len // 2 + 1
@@ -99,7 +99,7 @@ class Executor:
                     "masks": torch.cat([c["masks"], torch.zeros(K, 2, dtype=torch.long)]),
                     "bitmaps": torch.cat([c["bitmaps"], pack(canvases)])}
         out._dev = {}
-        out.small_batch, out._each = self.small_batch, None
+        out.per_program, out._each = self.per_program, None
         return out
 
     @property
@@ -121,7 +121,7 @@ class Executor:
         operation). Each row must be a valid program ending with ``$``;
         whatever follows ``$`` is ignored.
         """
-        if programs.device.type == "cpu" and 0 < programs.shape[0] <= self.small_batch:
+        if self.per_program and programs.device.type == "cpu" and programs.shape[0] > 0:
             each = self._run_each(programs, check_degenerate)
             if each is not None:
                 return each

@@ -188,10 +188,11 @@ def render_primitives(params: torch.Tensor, ellipsoid: torch.Tensor) -> torch.Te
     return out
 
 
-#: batches of at most this many programs run one program at a time on the CPU (:meth:`Executor._run_each`):
-#: a search executes most of its programs in batches of 1-8, where the batched path's ~15 tensor operations
-#: per stack step cost more than the work (bench.search_speed)
-SMALL_BATCH = 256
+#: on the CPU, programs run one at a time (:meth:`Executor._run_each`), this many per chunk (a chunk's primitive
+#: grids are cached together). A search executes most of its programs in batches of 1-8, where the batched
+#: path's ~15 tensor operations per stack step cost more than the work; one at a time is also faster on
+#: independent sampled programs at every batch size measured (16-2,048: 80-140 us a program, batched 125-400)
+EACH_CHUNK = 256
 #: most primitive grids kept by the per-program path (4 KiB each): a search renders the same primitives
 #: again and again, in the variants of one program
 PRIMITIVE_CACHE = 8192
@@ -200,11 +201,11 @@ PRIMITIVE_CACHE = 8192
 class Executor:
     """Executes padded batches of csg3d token programs."""
 
-    def __init__(self, table: TokenTable | None = None, chunk: int = 1024, small_batch: int = SMALL_BATCH):
+    def __init__(self, table: TokenTable | None = None, chunk: int = 1024, per_program: bool = True):
         self.table = table or token_table()
         self.chunk = chunk
-        #: batches up to this size on the CPU run program by program (0: always batched); the same bits
-        self.small_batch = small_batch
+        #: on the CPU, run program by program (False: the batched path everywhere); the same bits
+        self.per_program = per_program
         self._primitives: dict[tuple[int, ...], np.ndarray] = {}
         self._steps: tuple[list[int], list[int]] | None = None
 
@@ -219,14 +220,14 @@ class Executor:
         B = programs.shape[0]
         words = torch.empty(B, RES, RES, dtype=torch.int32, device=programs.device)
         flags = torch.zeros(B, dtype=torch.bool, device=programs.device)
-        if programs.device.type == "cpu" and 0 < B <= self.small_batch:
-            each = self._run_each(programs, check_degenerate)
-            if each is not None:
-                return each
-        for start in range(0, B, self.chunk):
-            w, f = self._run(programs[start:start + self.chunk].clamp(min=0), check_degenerate)
-            words[start:start + self.chunk] = w
-            flags[start:start + self.chunk] = f
+        per_program = self.per_program and programs.device.type == "cpu"
+        step = EACH_CHUNK if per_program else self.chunk
+        for start in range(0, B, step):
+            part = programs[start:start + step]
+            out = self._run_each(part, check_degenerate) if per_program else None
+            w, f = out if out is not None else self._run(part.clamp(min=0), check_degenerate)
+            words[start:start + step] = w
+            flags[start:start + step] = f
         return words, flags
 
     def __getstate__(self) -> dict:

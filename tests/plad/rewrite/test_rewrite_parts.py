@@ -66,6 +66,30 @@ def test_residual_boxes_bound_and_grow_inside_components():
     assert grow_box(prefix_sums(mask), (21, 21, 21)) == ([20, 20, 20], [22, 22, 22])
 
 
+def test_residual_boxes_equal_the_frozen_reference_box_for_box():
+    """The int32 summed-volume table and the face-by-face growing give the boxes of the code before them
+    (tests/reference/boxes_v0.py) on random masks: unions of boxes, with holes, noise, touching the border."""
+    from tests.reference import boxes_v0
+
+    rng = np.random.default_rng(1)
+    for i in range(120):
+        mask = np.zeros((32, 32, 32), dtype=bool)
+        for _ in range(rng.integers(1, 6)):
+            lo = rng.integers(-4, 30, 3).clip(0)
+            hi = lo + rng.integers(1, 20, 3)
+            mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+        if i % 3:
+            mask &= rng.random(mask.shape) < 0.95
+        if i % 7 == 0:
+            mask = rng.random(mask.shape) < 0.5
+        assert np.array_equal(prefix_sums(mask), boxes_v0.prefix_sums(mask))
+        for components, bounding, grown in ((3, True, 1), (2, False, 3)):
+            want = boxes_v0.residual_boxes(mask, components, bounding, grown)
+            got = residual_boxes(mask, components, bounding, grown)
+            assert [([int(v) for v in lo], [int(v) for v in hi]) for lo, hi in got] == \
+                [([int(v) for v in lo], [int(v) for v in hi]) for lo, hi in want]
+
+
 def test_group_selection_prefers_value_then_fewer_tokens():
     owner = np.array([0, 0, 0, 2, 2])
     values = np.array([1.0, 0.5, 0.5, 3.0, 2.0])        # lower is better here

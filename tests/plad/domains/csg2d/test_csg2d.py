@@ -143,10 +143,10 @@ def test_fuzzed_program_texts_never_crash():
 
 
 @pytest.mark.parametrize("check_degenerate", [False, True])
-def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate, monkeypatch):
-    """Batches up to ``small_batch`` programs run one program at a time (a canvas as one Python integer): the
-    same words and degenerate flags as the batched path, for sampled programs, random grammar programs and
-    rewriting's extended executor (pseudo draws of the empty and the full canvas), in batches of 1 to 512."""
+def test_cpu_programs_run_one_at_a_time_to_the_same_bits(check_degenerate, monkeypatch):
+    """On the CPU programs run one at a time (a canvas as one Python integer): the same words and degenerate
+    flags as the batched path, for sampled programs, random grammar programs and rewriting's extended executor
+    (pseudo draws of the empty and the full canvas), in batches of 1 to 512 and all at once."""
     from plad.domains.csg2d.executor import Executor
     from tests.grammar import masked_rollouts
 
@@ -166,12 +166,12 @@ def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate,
     monkeypatch.setattr(Executor, "_run_sorted",
                         lambda self, *a, _orig=Executor._run_sorted: calls.append(1) or _orig(self, *a))
     for plain, batch in ((Executor(), padded), (Executor().extended(canvases), templates)):
-        batched = Executor(small_batch=0)
+        batched = Executor(per_program=False)
         batched = batched if batch is padded else batched.extended(canvases)
         want_words, want_flags = batched.run_packed(batch, check_degenerate=check_degenerate)
         assert calls and bool(want_flags.any()) == check_degenerate
         calls.clear()
-        for size in (1, 5, 64, 512):
+        for size in (1, 5, 64, 512, len(batch)):
             for start in range(0, len(batch), size):
                 words, flags = plain.run_packed(batch[start:start + size], check_degenerate=check_degenerate)
                 assert torch.equal(words, want_words[start:start + size])
@@ -187,7 +187,7 @@ def test_a_malformed_row_runs_batched():
     for bad in (ids[:2] + [stop], ids[:1] + ids[2:3] + [stop], [ids[2], stop]):   # two canvases left; no operand
         row = torch.tensor([bad])
         assert Executor()._run_each(row, False) is None
-        assert torch.equal(Executor().run_packed(row)[0], Executor(small_batch=0).run_packed(row)[0])
+        assert torch.equal(Executor().run_packed(row)[0], Executor(per_program=False).run_packed(row)[0])
 
 
 def test_a_pickled_executor_rebuilds_its_integers():

@@ -222,16 +222,17 @@ def _with_pseudo_primitives(programs: list[list[int]], seed: int) -> list[list[i
 
 
 @pytest.mark.parametrize("check_degenerate", [False, True])
-def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate, monkeypatch):
-    """Batches up to ``small_batch`` programs run one program at a time in numpy (what a search runs): the same
-    words and degenerate flags as the batched path, for sampled programs, random grammar programs, rewriting's
-    pseudo primitives and any padding, through a primitive cache that fills, is cleared and is reused."""
+def test_cpu_programs_run_one_at_a_time_to_the_same_bits(check_degenerate, monkeypatch):
+    """On the CPU programs run one at a time in numpy, in chunks of ``EACH_CHUNK``: the same words and degenerate
+    flags as the batched path, for sampled programs, random grammar programs, rewriting's pseudo primitives and
+    any padding, in batches of 1 to 256 and all at once, through a primitive cache that fills, is cleared and is
+    reused."""
     import plad.domains.csg3d.executor as ex
 
     monkeypatch.setattr(ex, "PRIMITIVE_CACHE", 500)     # small: the cache is cleared during the test
     programs = DOMAIN.sample(200, np.random.default_rng(3)) + masked_rollouts(DOMAIN, 150, seed=9)
     programs += _with_pseudo_primitives(programs[:120], seed=4)
-    batched, each = Executor(TABLE, small_batch=0), Executor(TABLE)
+    batched, each = Executor(TABLE, per_program=False), Executor(TABLE)
     calls = []
     monkeypatch.setattr(Executor, "_run", lambda self, *a, _orig=Executor._run: calls.append(1) or _orig(self, *a))
     for pad in (0, -1, TABLE.index("union")):
@@ -239,7 +240,7 @@ def test_small_batches_run_program_by_program_to_the_same_bits(check_degenerate,
         want_words, want_flags = batched.run_packed(padded, check_degenerate=check_degenerate)
         assert calls and want_flags.any() == check_degenerate
         calls.clear()
-        for size in (1, 7, 64, 256):
+        for size in (1, 7, 64, 256, len(padded)):
             for start in range(0, len(padded), size):
                 words, flags = each.run_packed(padded[start:start + size], check_degenerate=check_degenerate)
                 assert torch.equal(words, want_words[start:start + size])
@@ -253,7 +254,7 @@ def test_a_row_that_does_not_end_runs_batched():
     ids = DOMAIN.parse("union cuboid 16 16 16 8 8 8 ellipsoid 10 10 10 6 6 6")
     cut = torch.tensor([ids[:-3], ids[:-3]])
     assert Executor(TABLE)._run_each(cut, False) is None
-    assert torch.equal(Executor(TABLE).run_packed(cut)[0], Executor(TABLE, small_batch=0).run_packed(cut)[0])
+    assert torch.equal(Executor(TABLE).run_packed(cut)[0], Executor(TABLE, per_program=False).run_packed(cut)[0])
 
 
 def test_a_pickled_executor_leaves_its_primitive_cache_behind():
