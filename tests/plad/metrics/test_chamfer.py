@@ -327,3 +327,25 @@ def test_cuda_matches_cpu(images):
     assert torch.equal(canny_binary(p.cuda()).cpu(), canny_binary(p))
     features = TargetFeatures.of(t.cuda())
     assert torch.equal(chamfer_against(p.cuda(), features).cpu(), chamfer(p, t))
+
+
+@pytest.mark.parametrize("n", [1, 7, 80, 300])
+def test_numpy_and_torch_sweeps_agree(n, monkeypatch):
+    """A sweep of a few images runs on numpy views of the tensor (the same integer steps in place): the same
+    distances as the torch sweep, for batches on both sides of the switch."""
+    import importlib
+
+    cd = importlib.import_module("plad.metrics.chamfer")   # (plad.metrics.chamfer is also the function's name)
+    gen = torch.Generator().manual_seed(n)
+    start = torch.randint(0, 40, (64, n, 66), generator=gen, dtype=torch.int32) * cd.STEP_HV
+    start[:, :, 0] = start[:, :, -1] = 63 * cd.STEP_HV
+    a, b = start.clone(), start.clone()
+    cd._sweep_rows(a)
+    monkeypatch.setattr(cd, "_NUMPY_SWEEP", 0)
+    cd._sweep_rows(b)
+    assert torch.equal(a, b) and not torch.equal(a, start)
+    part, whole = start.clone(), start.clone()                     # a view of some images, as the pool sweeps
+    cd._sweep_rows(part[:, : max(1, n // 2)])
+    monkeypatch.setattr(cd, "_NUMPY_SWEEP", 256 * 66)
+    cd._sweep_rows(whole[:, : max(1, n // 2)])
+    assert torch.equal(part, whole)
