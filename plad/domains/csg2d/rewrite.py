@@ -34,6 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from plad.domains import bits
 from plad.domains.bits import row_popcount
 from plad.domains.csg2d.executor import pack
 from plad.domains.csg2d.tokens import CANVAS, R_VALUES, XY_VALUES
@@ -89,6 +90,40 @@ def _outside(edges: torch.Tensor, regions: list[torch.Tensor]) -> torch.Tensor:
     return total
 
 
+def _edges_np(x: np.ndarray) -> np.ndarray:
+    """:func:`_edges` on numpy words (the same integer operations)."""
+    up = np.zeros_like(x)
+    up[:, 1:] = x[:, :-1]
+    down = np.zeros_like(x)
+    down[:, :-1] = x[:, 1:]
+    return x & ~((x << 1) & ((x >> 1) & _LOW63) & up & down)
+
+
+def _regions_np(edges: np.ndarray) -> list[np.ndarray]:
+    """:func:`_regions` on numpy words."""
+    out = [edges]
+    for s in _STEPS:
+        y = out[-1] | (out[-1] << s) | ((out[-1] >> s) & (_LOW63 >> (s - 1)))
+        rows = np.zeros_like(y)
+        rows[:, s:] = y[:, :-s]
+        rows[:, :-s] |= y[:, s:]
+        out.append(y | rows)
+    return out
+
+
+def _row_counts_np(words: np.ndarray) -> np.ndarray:
+    """Set bits per row of (C, 64) int64 words -> int64 (C,) (numpy's popcount, as bits.row_popcount)."""
+    return bits._BITWISE_COUNT(words.view(np.uint64)).sum(1, dtype=np.int64)
+
+
+def _outside_np(edges: np.ndarray, regions: list[np.ndarray]) -> np.ndarray:
+    """:func:`_outside` on numpy words: the same float64 sums in the same order."""
+    total = np.zeros(edges.shape[0], dtype=np.float64)
+    for w, region in zip(_WEIGHTS, regions):
+        total += w * _row_counts_np(edges & ~region).astype(np.float64)
+    return total
+
+
 class CSG2DRewrite(RewriteSpace):
     screen_keep = 8
     # a greedy chain of up to 7 primitives, then one round of refinement (more rounds gain little), grafting in
@@ -109,6 +144,8 @@ class CSG2DRewrite(RewriteSpace):
         super().__init__(domain)
         table = domain.tokens
         self.table = table
+        #: screen scores in numpy on the CPU (False: in torch everywhere); the same scores
+        self.numpy_screen = True
         self.stop = table.index("$")
         self.kind = np.array([t.kind for t in table.tokens])
         self.draws = np.array([i for i, t in enumerate(table.tokens) if t.kind == "draw"], dtype=np.int64)
@@ -258,6 +295,9 @@ class CSG2DRewrite(RewriteSpace):
     def screen_score(self, outputs: torch.Tensor, owner: torch.Tensor, prepared: tuple) -> torch.Tensor:
         """Minus the approximate Chamfer distance (higher is better); 16 where an edge map is empty."""
         t_edges, t_regions, t_count = prepared
+        if outputs.device.type == "cpu" and bits._BITWISE_COUNT is not None and self.numpy_screen:
+            return torch.from_numpy(self._screen_score_np(outputs.numpy(), owner.numpy(), t_edges.numpy(),
+                                                          [r.numpy() for r in t_regions], t_count.numpy()))
         out = torch.empty(outputs.shape[0], dtype=torch.float64)
         for start in range(0, outputs.shape[0], _SCREEN_CHUNK):
             sl = slice(start, start + _SCREEN_CHUNK)
@@ -269,4 +309,23 @@ class CSG2DRewrite(RewriteSpace):
             to_pred = _outside(te, _regions(edges)) / (tc + 1)
             cd = (to_target + to_pred) / 2
             out[sl] = -cd.masked_fill((count == 0) | (tc == 0), 16.0)
+        return out
+
+    @staticmethod
+    def _screen_score_np(outputs: np.ndarray, owner: np.ndarray, t_edges: np.ndarray, t_regions: list[np.ndarray],
+                         t_count: np.ndarray) -> np.ndarray:
+        """:meth:`screen_score` in numpy (CPU): a screen scores a few dozen candidates at a time, where each
+        torch operation's overhead is most of its cost; the same integer steps and float64 sums, the same scores."""
+        out = np.empty(outputs.shape[0], dtype=np.float64)
+        for start in range(0, outputs.shape[0], _SCREEN_CHUNK):
+            sl = slice(start, start + _SCREEN_CHUNK)
+            own = owner[sl]
+            edges = _edges_np(outputs[sl])
+            count = _row_counts_np(edges)
+            te, tc = t_edges[own], t_count[own]
+            to_target = _outside_np(edges, [r[own] for r in t_regions]) / (count + 1)
+            to_pred = _outside_np(te, _regions_np(edges)) / (tc + 1)
+            cd = (to_target + to_pred) / 2
+            cd[(count == 0) | (tc == 0)] = 16.0
+            out[sl] = -cd
         return out

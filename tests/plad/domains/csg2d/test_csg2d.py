@@ -201,3 +201,34 @@ def test_a_pickled_executor_rebuilds_its_integers():
     copy = pickle.loads(pickle.dumps(executor))
     assert copy._each is None and executor._each is not None
     assert torch.equal(copy.run_packed(programs)[0], want)
+
+
+def test_the_screen_scores_in_numpy_equal_the_torch_ones():
+    """The rewrite space's screen (approximate Chamfer of packed canvases) in numpy on the CPU: the same scores as
+    in torch, bit for bit, for program outputs, random canvases (every bit, the sign bit included), empty and
+    full canvases, several targets and chunks."""
+    from plad.domains.csg2d import rewrite as rw
+    from plad.domains.csg2d.executor import pack
+
+    space = DOMAIN.rewrite
+    programs = DOMAIN.sample(40, np.random.default_rng(8))
+    targets = DOMAIN.execute(pad_programs(programs[:5], pad=DOMAIN.tokens.index("$")))
+    prepared = space.prepare_screen(targets)
+    gen = torch.Generator().manual_seed(3)
+    outputs = torch.cat([
+        DOMAIN.executor.run_packed(pad_programs(programs, pad=DOMAIN.tokens.index("$")))[0],
+        pack(torch.rand(30, 64, 64, generator=gen) > 0.5),
+        torch.randint(-2**63, 2**63 - 1, (20, 64), generator=gen, dtype=torch.int64),
+        torch.zeros(3, 64, dtype=torch.int64), torch.full((3, 64), -1, dtype=torch.int64)])
+    owner = torch.randint(0, 5, (len(outputs),), generator=gen)
+    saved = rw._SCREEN_CHUNK
+    try:
+        for chunk in (saved, 7):
+            rw._SCREEN_CHUNK = chunk
+            space.numpy_screen = True
+            fast = space.screen_score(outputs, owner, prepared)
+            space.numpy_screen = False
+            slow = space.screen_score(outputs, owner, prepared)
+            assert fast.dtype == slow.dtype == torch.float64 and torch.equal(fast, slow)
+    finally:
+        rw._SCREEN_CHUNK, space.numpy_screen = saved, True
