@@ -1,6 +1,6 @@
 """Search and network + refinement: the same programs, in how much CPU time, with and without the speedups.
 
-Usage: ``python -m bench.search_speed [csg2d csg3d] [--efforts fast default] [--shapes 20] [--repeats 2]``
+Usage: ``python -m bench.search_speed [csg2d csg3d shapeassembly] [--efforts fast default] [--shapes 20] [--repeats 2]``
 
 For each domain and effort level, on the first N prepared test shapes, one torch thread: search from scratch,
 and refinement of the shipped network's programs (beam 10, each shape's best, decoded once outside the timing),
@@ -104,6 +104,24 @@ def _torch_screen() -> Iterator[None]:
         space.numpy_screen = saved
 
 
+@contextlib.contextmanager
+def _original_shapeassembly_executor() -> Iterator[None]:
+    """ShapeAssembly's run_batch as before its prefix cache and grid-aligned voxelizing (the frozen copy in
+    tests/reference/shapeassembly_v0.py); the fast one's prefix cache emptied after, so it is timed with the
+    cache it builds itself."""
+    from plad.domains.shapeassembly import ShapeAssembly, cuboids
+    from tests.reference import shapeassembly_v0
+
+    own = ShapeAssembly.run_batch
+    ShapeAssembly.run_batch = lambda self, programs: shapeassembly_v0.run_batch(
+        programs.tolist() if isinstance(programs, torch.Tensor) else programs)
+    try:
+        yield
+    finally:
+        ShapeAssembly.run_batch = own
+        cuboids.clear_cache()
+
+
 #: each speedup by name, with the context that switches it off (the baseline runs with all of them off)
 SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "numpy popcount in the 2D and 3D screens": _scalar_popcount,
@@ -112,6 +130,7 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "3D residual boxes: int32 summed-volume table, boxes grown face by face": _reference_boxes,
     "2D exact Chamfer: the sweeps of a few images on numpy views": _torch_sweeps,
     "2D screen scores in numpy": _torch_screen,
+    "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
 }
 
 
@@ -162,7 +181,7 @@ def _network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("domains", nargs="*", default=["csg2d", "csg3d"])
+    parser.add_argument("domains", nargs="*", default=["csg2d", "csg3d", "shapeassembly"])
     parser.add_argument("--efforts", nargs="+", default=["fast", "default"])
     parser.add_argument("--shapes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=2)
