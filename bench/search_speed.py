@@ -122,6 +122,20 @@ def _original_shapeassembly_executor() -> Iterator[None]:
         cuboids.clear_cache()
 
 
+@contextlib.contextmanager
+def _reference_placements() -> Iterator[None]:
+    """ShapeAssembly insertion's attachment placements as before they were made fast (the frozen copy)."""
+    from plad.domains.shapeassembly.rewrite import ShapeAssemblyRewrite
+    from tests.reference.shapeassembly_placements_v0 import placements
+
+    own = ShapeAssemblyRewrite._placements
+    ShapeAssemblyRewrite._placements = lambda self, cuboids, dims, center: placements(cuboids, dims, center)
+    try:
+        yield
+    finally:
+        ShapeAssemblyRewrite._placements = own
+
+
 #: each speedup by name, with the context that switches it off (the baseline runs with all of them off)
 SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "numpy popcount in the 2D and 3D screens": _scalar_popcount,
@@ -131,6 +145,7 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "2D exact Chamfer: the sweeps of a few images on numpy views": _torch_sweeps,
     "2D screen scores in numpy": _torch_screen,
     "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
+    "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,
 }
 
 

@@ -158,7 +158,11 @@ class ShapeAssemblyRewrite(RewriteSpace):
         values separately.
         """
         out = []
+        # the mover's offsets per in-face axis (the part's dims): (9,) each
+        mover = [(_GRID - 0.5) * dims[a] for a in range(3)]
         for name, pos, axes, bdims in cuboids:
+            # the target's moves per in-face axis: [i2] = (grid value - 0.5) * bdims[a] along axes[a], (9, 3)
+            target = [((_GRID - 0.5) * bdims[a])[:, None] * axes[a][None, :] for a in range(3)]
             for face in FACE_TOKENS:
                 axis = _FACE_AXIS[face]
                 q1, q2 = attach_points(face, name == "bbox", (0.5, 0.5), (0.5, 0.5))
@@ -166,15 +170,18 @@ class ShapeAssemblyRewrite(RewriteSpace):
                 resid = pos + ((np.array(q2) - 0.5) * bdims) @ axes - (np.array(q1) - 0.5) * dims - center
                 choice = []
                 for a in (b for b in range(3) if b != axis):
-                    shift = np.repeat(((_GRID - 0.5) * bdims[a])[:, None] * axes[a][None, :], 9, 0)
-                    shift = shift.reshape(9, 9, 3).transpose(1, 0, 2).copy()       # [i1, i2]: target move by i2
-                    shift[:, :, a] -= ((_GRID - 0.5) * dims[a])[:, None]            # minus the mover's offset by i1
-                    cost = np.linalg.norm(resid + shift, axis=2)
+                    shift = np.repeat(target[a][None, :, :], 9, 0)                 # [i1, i2]: target move by i2
+                    shift[:, :, a] -= mover[a][:, None]                             # minus the mover's offset by i1
+                    miss = resid + shift
+                    # np.linalg.norm(miss, axis=2) as numpy computes it, without its checks (a search calls this
+                    # thousands of times on 9 x 9 x 3 arrays)
+                    cost = np.sqrt(np.add.reduce(miss * miss, axis=2))
                     i1, i2 = np.unravel_index(int(cost.argmin()), cost.shape)
                     resid = resid + shift[i1, i2]
                     choice.append((FPOS[i1], FPOS[i2]))
                 (m1, t1), (m2, t2) = choice
-                out.append((float(np.linalg.norm(resid)), ["Attach", name, face, f"fpos_{m1}_{m2}", f"fpos_{t1}_{t2}"]))
+                out.append((float(np.sqrt(resid.dot(resid))),     # np.linalg.norm of a vector, as numpy computes it
+                            ["Attach", name, face, f"fpos_{m1}_{m2}", f"fpos_{t1}_{t2}"]))
         out.sort(key=lambda x: x[0])
         return out
 

@@ -224,3 +224,21 @@ def test_cli_outputs_for_both_forms(tmp_path, capsys, fixtures_dir):
                   "Program_0 at this point"
     assert main(["execute", "shapeassembly", "START 16 Cuboid 8 8 8 Attach cube4", "-o", str(tmp_path / "x.npy")]) == 2
     assert main(["execute", "shapeassembly", str(program), "-o", str(tmp_path / "x.stl")]) == 2
+
+
+def test_insertion_placements_equal_the_frozen_reference():
+    """The insertion's attachment placements (distance and Attach tokens of every cuboid face, best first) equal
+    those of the code before they were made fast (tests/reference/shapeassembly_placements_v0.py), float for
+    float, for axis-aligned and rotated cuboids of every size."""
+    from tests.reference.shapeassembly_placements_v0 import placements
+
+    space = get_domain("shapeassembly").rewrite
+    rng = np.random.default_rng(0)
+    for _ in range(150):
+        cuboids = []
+        for k in range(int(rng.integers(1, 6))):
+            axes = np.eye(3) if rng.random() < 0.6 else np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            cuboids.append(("bbox" if k == 0 else f"cube{k - 1}", rng.uniform(-1, 1, 3), axes,
+                            rng.uniform(0.05, 1.2, 3)))
+        dims, center = rng.uniform(0.05, 1.0, 3), rng.uniform(-1, 1, 3)
+        assert space._placements(cuboids, dims, center) == placements(cuboids, dims, center)
