@@ -51,6 +51,8 @@ GROWN = 3
 PLACEMENTS = 2
 _GRID = np.array(list(FPOS), dtype=np.float64) / 10.0
 _FACE_AXIS = {"left": 0, "right": 0, "bot": 1, "top": 1, "back": 2, "front": 2}
+#: (axis, indices into FACE_TOKENS of the faces across it)
+_FACES_BY_AXIS = tuple((a, tuple(i for i, f in enumerate(FACE_TOKENS) if _FACE_AXIS[f] == a)) for a in range(3))
 
 
 class ShapeAssemblyRewrite(RewriteSpace):
@@ -161,27 +163,36 @@ class ShapeAssemblyRewrite(RewriteSpace):
         # the mover's offsets per in-face axis (the part's dims): (9,) each
         mover = [(_GRID - 0.5) * dims[a] for a in range(3)]
         for name, pos, axes, bdims in cuboids:
-            # the target's moves per in-face axis: [i2] = (grid value - 0.5) * bdims[a] along axes[a], (9, 3)
-            target = [((_GRID - 0.5) * bdims[a])[:, None] * axes[a][None, :] for a in range(3)]
+            # the (mover, target) moves per in-face axis a: [i1, i2] = target moved by grid value i2 along axes[a]
+            # minus the mover's offset by grid value i1, (9, 9, 3)
+            shifts = []
+            for a in range(3):
+                shift = np.repeat((((_GRID - 0.5) * bdims[a])[:, None] * axes[a][None, :])[None, :, :], 9, 0)
+                shift[:, :, a] -= mover[a][:, None]
+                shifts.append(shift)
+            # error of each face's placement with both in-face points at the face centers: (3,) per face
+            resid = []
             for face in FACE_TOKENS:
-                axis = _FACE_AXIS[face]
                 q1, q2 = attach_points(face, name == "bbox", (0.5, 0.5), (0.5, 0.5))
-                # error of the placement with both in-face points at the face centers
-                resid = pos + ((np.array(q2) - 0.5) * bdims) @ axes - (np.array(q1) - 0.5) * dims - center
-                choice = []
+                resid.append(pos + ((np.array(q2) - 0.5) * bdims) @ axes - (np.array(q1) - 0.5) * dims - center)
+            # the faces of one axis share their in-face axes and moves: both are chosen for them together, the
+            # first in-face axis, then the second from the error the first leaves
+            found = {}
+            for axis, faces in _FACES_BY_AXIS:
+                r = np.stack([resid[f] for f in faces])                          # (2, 3)
+                picks = []
                 for a in (b for b in range(3) if b != axis):
-                    shift = np.repeat(target[a][None, :, :], 9, 0)                 # [i1, i2]: target move by i2
-                    shift[:, :, a] -= mover[a][:, None]                             # minus the mover's offset by i1
-                    miss = resid + shift
-                    # np.linalg.norm(miss, axis=2) as numpy computes it, without its checks (a search calls this
-                    # thousands of times on 9 x 9 x 3 arrays)
-                    cost = np.sqrt(np.add.reduce(miss * miss, axis=2))
-                    i1, i2 = np.unravel_index(int(cost.argmin()), cost.shape)
-                    resid = resid + shift[i1, i2]
-                    choice.append((FPOS[i1], FPOS[i2]))
-                (m1, t1), (m2, t2) = choice
-                out.append((float(np.sqrt(resid.dot(resid))),     # np.linalg.norm of a vector, as numpy computes it
-                            ["Attach", name, face, f"fpos_{m1}_{m2}", f"fpos_{t1}_{t2}"]))
+                    miss = r[:, None, None, :] + shifts[a][None]                   # (2, 9, 9, 3)
+                    # np.linalg.norm(miss, axis=-1) as numpy computes it, without its checks
+                    cost = np.sqrt(np.add.reduce(miss * miss, axis=-1)).reshape(len(faces), 81)
+                    i1, i2 = np.divmod(cost.argmin(axis=1), 9)                     # the first minimum, as argmin
+                    r = r + shifts[a][i1, i2]
+                    picks.append((i1, i2))
+                for k, f in enumerate(faces):
+                    (m1, t1), (m2, t2) = ((FPOS[i1[k]], FPOS[i2[k]]) for i1, i2 in picks)
+                    found[f] = (float(np.sqrt(r[k].dot(r[k]))),        # np.linalg.norm of a vector, as numpy does it
+                                ["Attach", name, FACE_TOKENS[f], f"fpos_{m1}_{m2}", f"fpos_{t1}_{t2}"])
+            out.extend(found[f] for f in range(len(FACE_TOKENS)))
         out.sort(key=lambda x: x[0])
         return out
 
