@@ -82,15 +82,16 @@ def _reference_boxes() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _torch_sweeps() -> Iterator[None]:
-    """The exact Chamfer's distance-transform sweeps in torch whatever the batch, as before."""
+    """The exact Chamfer's distance-transform sweeps and masked sums in torch whatever the batch, as before."""
     import importlib
 
     chamfer = importlib.import_module("plad.metrics.chamfer")
-    saved, chamfer._NUMPY_SWEEP = chamfer._NUMPY_SWEEP, 0
+    saved = chamfer._NUMPY_SWEEP, chamfer._NUMPY_SUMS
+    chamfer._NUMPY_SWEEP = chamfer._NUMPY_SUMS = 0
     try:
         yield
     finally:
-        chamfer._NUMPY_SWEEP = saved
+        chamfer._NUMPY_SWEEP, chamfer._NUMPY_SUMS = saved
 
 
 @contextlib.contextmanager
@@ -142,7 +143,7 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "3D CSG programs run one at a time on the CPU (numpy, cached primitives)": _batched_csg3d,
     "2D CSG programs run one at a time on the CPU (a canvas as one Python integer)": _batched_csg2d,
     "3D residual boxes: int32 summed-volume table, boxes grown face by face": _reference_boxes,
-    "2D exact Chamfer: the sweeps of a few images on numpy views": _torch_sweeps,
+    "2D exact Chamfer: the sweeps and masked sums of a few images in numpy": _torch_sweeps,
     "2D screen scores in numpy": _torch_screen,
     "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
     "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,

@@ -104,6 +104,8 @@ _SUB_CHUNK = 64
 _SWEEP_CHUNK = 1024
 # sweeps of at most this many cells a row (images x (W + 2)) run on numpy views on the CPU (_sweep_rows)
 _NUMPY_SWEEP = 256 * 66
+# masked sums over at most this many images run in numpy on the CPU (_masked_sums)
+_NUMPY_SUMS = 256
 
 
 # --- execution: chunks on a pool of single-threaded workers -------------------------
@@ -518,6 +520,15 @@ def _masked_sums(
     """
     shape = torch.broadcast_shapes(values.shape, mask.shape)[1:]
     device = values.device
+    if device.type == "cpu" and math.prod(shape[:-1]) <= _NUMPY_SUMS:
+        # a few images: two numpy operations instead of four torch ones per row. The sum is exact either way
+        # (integers below 2^53), so summed in int64 and converted it is the same float64
+        picked = np.where(mask.numpy(), values.numpy(), 0)
+        total = torch.from_numpy(picked.sum(axis=(0, picked.ndim - 1), dtype=np.int64).astype(np.float64))
+        if not count:
+            return total, None
+        return total, torch.from_numpy(np.broadcast_to(mask.numpy(), picked.shape).sum(
+            axis=(0, picked.ndim - 1), dtype=np.int64))
     product = torch.empty(shape, dtype=values.dtype, device=device)
     wide = torch.empty(shape, dtype=torch.float64, device=device)
     total = torch.zeros(shape[:-1], dtype=torch.float64, device=device)

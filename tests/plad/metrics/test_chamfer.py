@@ -349,3 +349,23 @@ def test_numpy_and_torch_sweeps_agree(n, monkeypatch):
     monkeypatch.setattr(cd, "_NUMPY_SWEEP", 256 * 66)
     cd._sweep_rows(whole[:, : max(1, n // 2)])
     assert torch.equal(part, whole)
+
+
+@pytest.mark.parametrize("shape, mask_shape", [((64, 5, 64), (64, 5, 64)), ((64, 3, 4, 64), (64, 3, 1, 64)),
+                                               ((64, 300, 64), (64, 300, 64))])
+def test_numpy_and_torch_masked_sums_agree(shape, mask_shape, monkeypatch):
+    """The masked sums of a few images run in numpy (int64 sums, exact): the same float64 totals and counts as
+    the torch rows, on strided views as the metric passes them."""
+    import importlib
+
+    cd = importlib.import_module("plad.metrics.chamfer")
+    gen = torch.Generator().manual_seed(len(shape))
+    padded = torch.randint(0, 60, (*shape[:-1], shape[-1] + 2), generator=gen, dtype=torch.int32) * cd.STEP_HV
+    values = padded[..., 1:-1]                                        # a strided view, as the sweeps' buffer
+    mask = torch.rand(mask_shape, generator=gen) < 0.3
+    fast = cd._masked_sums(values, mask, count=True)
+    monkeypatch.setattr(cd, "_NUMPY_SUMS", 0)
+    slow = cd._masked_sums(values, mask, count=True)
+    assert fast[0].dtype == slow[0].dtype == torch.float64 and fast[1].dtype == slow[1].dtype == torch.int64
+    assert torch.equal(fast[0], slow[0]) and torch.equal(fast[1], slow[1])
+    assert cd._masked_sums(values, mask, count=False)[1] is None
