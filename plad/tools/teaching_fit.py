@@ -10,6 +10,9 @@ metric on the fit sample (the ceiling, from the run's ``summary.json``) as a dot
 
     python -m plad.tools.teaching_fit -o docs/teaching-fit.png runs/finetune/*/taught/history.csv
     python -m plad.tools.teaching_fit -o docs/teaching-fit.png results/finetune/*/taught.json
+
+Several runs of one domain share its panel, one colour each, named by the sizes their start was grown to;
+``--against epoch`` draws them at equal steps instead of equal hours.
 """
 from __future__ import annotations
 
@@ -97,7 +100,16 @@ def summary_curve(path: Path, summary: dict) -> dict[str, list[float]]:
     return out
 
 
-def plot(histories: list[Path], output: Path) -> None:
+def run_name(summary: dict) -> str:
+    """How a run is told apart from others of its domain in one panel: the sizes its start was grown to
+    (``teach.<domain>.grow``), else the start's own size."""
+    grow = summary.get("grow")
+    if not grow:
+        return "the start's size"
+    return "grown: " + ", ".join(f"{k} {'-'.join(map(str, v)) if isinstance(v, list) else v}" for k, v in grow.items())
+
+
+def plot(histories: list[Path], output: Path, against: str = "hours") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -107,20 +119,22 @@ def plot(histories: list[Path], output: Path) -> None:
     domains = sorted({d for d, _, _ in runs})
     fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 4.2), squeeze=False)
     for ax, domain in zip(axes[0], domains):
-        for d, c, summary in runs:
-            if d != domain:
-                continue
+        mine = [(c, summary) for d, c, summary in runs if d == domain]
+        ceilings = set()
+        for i, (c, summary) in enumerate(mine):
+            # one colour per run where several share the panel (e.g. a grown start beside the start's size)
+            prefix, color = (f"{run_name(summary)}: ", f"C{i}") if len(mine) > 1 else ("", None)
             for key, label, style in CURVES:
-                ax.plot(c["hours"], c[key], style, marker="o", markersize=3, label=label)
+                ax.plot(c[against], c[key], style, marker="o", markersize=3, label=prefix + label, color=color)
             ceiling = summary.get("fit_labels_mean")
-            if ceiling is not None:
+            if ceiling is not None and ceiling not in ceilings:
+                ceilings.add(ceiling)
                 ax.axhline(ceiling, color="gray", linestyle="dotted", label=f"labels on the fit sample ({ceiling:.3f})")
-            metric = summary.get("metric", "metric")
-            ax.set_ylabel(metric)
+            ax.set_ylabel(summary.get("metric", "metric"))
         ax.set_title(f"{domain}: taught by search labels")
-        ax.set_xlabel("hours of teaching (one thread, wall clock)")
+        ax.set_xlabel("hours of teaching (one thread, wall clock)" if against == "hours" else "epochs of teaching")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7 if len(mine) == 1 else 6)
     fig.tight_layout()
     save_figure(fig, output, dpi=110)
 
@@ -129,9 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("histories", nargs="+", type=Path)
     parser.add_argument("-o", "--output", type=Path, required=True)
+    parser.add_argument("--against", choices=("hours", "epoch"), default="hours",
+                        help="the x axis: hours of teaching (default) or epochs (equal steps)")
     args = parser.parse_args(argv)
     try:
-        plot(args.histories, args.output)
+        plot(args.histories, args.output, args.against)
     except ValueError as err:
         print(err, file=sys.stderr)
         return 1

@@ -42,3 +42,24 @@ def test_the_teaching_plot_reads_the_committed_summaries_history(tmp_path):
     assert main([str(tmp_path / "other.json"), "-o", str(tmp_path / "x.png")]) == 1
     (tmp_path / "broken.json").write_text("{")
     assert main([str(tmp_path / "broken.json"), "-o", str(tmp_path / "y.png")]) == 1
+
+
+def test_runs_of_one_domain_share_its_panel_named_by_their_growth(tmp_path):
+    from plad.tools.teaching_fit import main, run_name
+
+    paths = []
+    for name, grow in (("plain", None), ("grown", {"enc_channels": [8, 16, 32, 64]})):
+        summary = {"domain": "csg3d", "metric": "iou", "fit_labels_mean": 0.79, "history": [
+            {"val": 0.5, "fit": 0.5, "fit_wide": 0.55, "seconds": 200.0},
+            {"val": 0.55, "fit": 0.56, "fit_wide": 0.6, "seconds": 400.0}], **({"grow": grow} if grow else {})}
+        path = tmp_path / name / "taught.json"
+        path.parent.mkdir()
+        path.write_text(json.dumps(summary))
+        paths.append(str(path))
+    assert run_name({}) == "the start's size"
+    assert run_name({"grow": {"enc_channels": [8, 16, 32, 64], "n_layers": 4}}) == \
+        "grown: enc_channels 8-16-32-64, n_layers 4"
+    for against in ("epoch", "hours"):
+        out = tmp_path / f"{against}.png"
+        assert main([*paths, "-o", str(out), "--against", against]) == 0
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
