@@ -31,6 +31,7 @@ import json
 import os
 import shutil
 import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -134,7 +135,7 @@ def run(a: argparse.Namespace) -> dict:
     from plad.shipped import pretrained_checkpoint
 
     started = time.monotonic()
-    work = Path(a.work)
+    work = Path(a.work) if a.work else Path(tempfile.gettempdir()) / "plad_gpu_segment"
     layout = Layout(work)
     cfg = segment_config(Path(a.params), a.profile, a.domain, a.set or [], a)
     if cfg.real_val_shapes:   # the prepared real shapes travel with `carry`; here, from the checkout
@@ -173,7 +174,8 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m plad.tools.gpu_segment", description=__doc__.splitlines()[0])
     p.add_argument("domain", choices=domain_names())
     p.add_argument("--out", required=True, help="where the results are copied (on a lent machine: under $OUT)")
-    p.add_argument("--work", default="/tmp/plad_gpu_segment", help="layout root of the run (programs, state)")
+    p.add_argument("--work", default=None,
+                   help="layout root of the run (programs, state; default: plad_gpu_segment in the temporary folder)")
     p.add_argument("--params", default="params.yaml")
     p.add_argument("--profile", default=None, help="the params file's own profile unless given")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override of pretrain.<domain>")
