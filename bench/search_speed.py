@@ -182,7 +182,7 @@ def compare(run: Callable[[], object], repeats: int) -> tuple[float, float, bool
     return min(base_s), min(new_s), identical
 
 
-def _network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
+def network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
     """The shipped network's best-of-beam program per shape (beam 10), or None without a shipped network."""
     from plad.model.checkpoint import load_model
     from plad.model.decode import infer_programs
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"{path}: no such prepared dataset (run the prepare stages first)")
         targets = torch.from_numpy(load_prepared(path, "test")[: args.shapes])
         search(domain, targets[:2], search_config(domain, effort="fast"))          # warm-up (lookup tables)
-        starts = _network_programs(domain, targets)
+        starts = network_programs(domain, targets)
         for effort in args.efforts:
             cfg = search_config(domain, effort=effort)
             paths = {"search": functools.partial(search, domain, targets, cfg)}

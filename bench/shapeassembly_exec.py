@@ -25,6 +25,7 @@ import time
 import numpy as np
 import torch
 
+from bench.search_speed import network_programs
 from plad.domains import get_domain
 from plad.domains.shapeassembly import ShapeAssembly
 from plad.domains.shapeassembly import cuboids as fast_cuboids
@@ -78,19 +79,6 @@ def time_batches(domain, batches, repeats: int) -> tuple[float, float, bool]:
         if rep == 0:
             identical = all(same_outputs(a, b) for a, b in zip(old, new))
     return best_old, best_new, identical
-
-
-def network_programs(domain, targets: torch.Tensor) -> list[list[int]] | None:
-    """The shipped network's best-of-beam program per shape (beam 10), or None without a shipped network."""
-    from plad.model.checkpoint import load_model
-    from plad.model.decode import infer_programs
-    from plad.shipped import shipped_model
-
-    shipped = shipped_model(domain.name)
-    if shipped is None:
-        return None
-    model, _ = load_model(shipped.checkpoint, expect_domain=domain.name)
-    return [list(p) for p in infer_programs(model, domain, targets, beam=10).programs]
 
 
 def time_search(domain, targets: torch.Tensor, effort: str, repeats: int = 1,

@@ -52,18 +52,9 @@ def grown_config(cfg: ModelConfig, enc_channels=None, n_layers=None, dim_ff=None
 
 
 @torch.no_grad()
-def _copy_linear(new: nn.Linear, old: nn.Linear) -> None:
-    """The old weights in the top-left corner; the new outputs keep their fresh rows, the new inputs read zero."""
-    o, i = old.weight.shape
-    new.weight[:, i:] = 0
-    new.weight[:o, :i] = old.weight
-    if old.bias is not None:
-        new.bias[:o] = old.bias
-
-
-@torch.no_grad()
-def _copy_conv(new: nn.Module, old: nn.Module) -> None:
-    """As :func:`_copy_linear` for a convolution: (out, in, *kernel)."""
+def _copy_weights(new: nn.Module, old: nn.Module) -> None:
+    """A linear layer's or convolution's old weights ((out, in, *kernel)) in the corner of the new one's: the new
+    outputs keep their fresh rows, the new inputs are read with weight zero."""
     o, i = old.weight.shape[:2]
     new.weight[:, i:] = 0
     new.weight[:o, :i] = old.weight
@@ -93,17 +84,17 @@ def grow(model: PLADNet, enc_channels=None, n_layers=None, dim_ff=None) -> PLADN
     # encoder: conv blocks, then the MLP whose first layer reads the last block's channels
     for m_new, m_old in zip(new.encoder.net, model.encoder.net):
         if isinstance(m_old, (nn.Conv2d, nn.Conv3d)):
-            _copy_conv(m_new, m_old)
+            _copy_weights(m_new, m_old)
         elif isinstance(m_old, nn.modules.batchnorm._BatchNorm):
             _copy_norm(m_new, m_old)
-    _copy_linear(new.encoder.mlp[0], model.encoder.mlp[0])
+    _copy_weights(new.encoder.mlp[0], model.encoder.mlp[0])
     new.encoder.mlp[1:].load_state_dict(model.encoder.mlp[1:].state_dict())
     # decoder layers: the trained ones (feed-forward widened), then identities
     for layer_new, layer_old in zip(new.layers, model.layers):
         for name in ("ln1", "qkv", "out", "ln2"):
             getattr(layer_new, name).load_state_dict(getattr(layer_old, name).state_dict())
-        _copy_linear(layer_new.ff[0], layer_old.ff[0])
-        _copy_linear(layer_new.ff[3], layer_old.ff[3])
+        _copy_weights(layer_new.ff[0], layer_old.ff[0])
+        _copy_weights(layer_new.ff[3], layer_old.ff[3])
         # the hidden units the old network lacks: their outgoing weights zero (ff[3]'s new columns, set above)
     for layer in new.layers[len(model.layers):]:
         for lin in (layer.out, layer.ff[3]):
