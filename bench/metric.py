@@ -10,9 +10,12 @@ the same pairs in the same process, each timed as the best of R interleaved
 repeats after a warm-up. The baseline is the straightforward per-pair OpenCV + numpy
 implementation of the test suite (``tests/reference/chamfer_cv.py``); ours is
 ``plad.metrics.chamfer.chamfer`` on the whole batch (torch threads as
-default). A second measurement scores the K perturbations of each target
+default: on the CPU its compiled kernels, ``plad.metrics.chamfer_compiled``).
+A second measurement scores the K perturbations of each target
 against it with ``chamfer_against`` (target edges and distance maps computed
-once per target, inside the timed region). The last line is
+once per target, inside the timed region). The tensor path (the compiled
+kernels switched off, as on CUDA or without numba) is timed beside them and
+must give the same numbers bit for bit. The last line is
 ``ratio <ours/baseline>`` for the plain ``chamfer``.
 """
 from __future__ import annotations
@@ -26,7 +29,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import importlib
+
 from plad.metrics.chamfer import TargetFeatures, chamfer, chamfer_against
+
+_module = importlib.import_module("plad.metrics.chamfer")  # (plad.metrics.chamfer is also the function's name)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 FIXTURE = "fixtures/csgnet_chamfer_reference.npz"
@@ -84,6 +91,17 @@ def _seconds(fn) -> float:
     return time.perf_counter() - start
 
 
+def _tensor_path(fn):
+    """fn with the compiled kernels switched off."""
+    def run():
+        saved, _module._COMPILED = _module._COMPILED, False
+        try:
+            return fn()
+        finally:
+            _module._COMPILED = saved
+    return run
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("domain", choices=["csg2d"])
@@ -115,9 +133,11 @@ def main(argv: list[str] | None = None) -> None:
         "ours": lambda: chamfer(flat_pred, flat_target),
         "shared": lambda: chamfer_against(pred_t, TargetFeatures.of(target_t)),
         "baseline": lambda: [chamfer_cv(p, t) for p, t in pairs_np],
+        "tensor": _tensor_path(lambda: chamfer(flat_pred, flat_target)),
     }
     chamfer(flat_pred[:256], flat_target[:256])  # warm-up (thread pool, buffers)
     chamfer_against(pred_t[:8], TargetFeatures.of(target_t[:8]))
+    _tensor_path(lambda: chamfer(flat_pred[:256], flat_target[:256]))()
     # Interleaved repeats, best of each: a load change on this shared machine
     # hits every side alike.
     best = {name: float("inf") for name in runs}
@@ -129,10 +149,12 @@ def main(argv: list[str] | None = None) -> None:
     ours_v = chamfer(flat_pred, flat_target).numpy()
     shared_v = chamfer_against(pred_t, TargetFeatures.of(target_t)).numpy().reshape(-1)
     base_v = np.array([chamfer_cv(p, t) for p, t in pairs_np])
+    tensor_v = _tensor_path(lambda: chamfer(flat_pred, flat_target))().numpy()
     ours, shared, base = pairs / ours_s, pairs / shared_s, pairs / base_s
     print(f"pairs {pairs} ({n} targets x {k} perturbations), torch threads {torch.get_num_threads()}")
     print(f"max |ours - baseline| {np.abs(ours_v - base_v).max():.2e}, "
           f"shared-target {np.abs(shared_v - base_v).max():.2e}, mean CD {base_v.mean():.4f}")
+    print(f"tensor path {pairs / best['tensor']:.1f} pairs/s, the same numbers: {np.array_equal(tensor_v, ours_v)}")
     print(f"ours {ours:.1f} pairs/s")
     print(f"baseline {base:.1f} pairs/s")
     print(f"shared-target {shared:.1f} pairs/s (chamfer_against, {k} candidates per target)")

@@ -95,6 +95,19 @@ def _torch_sweeps() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _tensor_chamfer() -> Iterator[None]:
+    """2D's exact Chamfer on the tensor path, as before its compiled kernels (plad.metrics.chamfer_compiled)."""
+    import importlib
+
+    chamfer = importlib.import_module("plad.metrics.chamfer")
+    saved, chamfer._COMPILED = chamfer._COMPILED, False
+    try:
+        yield
+    finally:
+        chamfer._COMPILED = saved
+
+
+@contextlib.contextmanager
 def _torch_screen() -> Iterator[None]:
     """2D's screen scores in torch, as before their numpy path."""
     space = get_domain("csg2d").rewrite
@@ -144,6 +157,7 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "2D CSG programs run one at a time on the CPU (a canvas as one Python integer)": _batched_csg2d,
     "3D residual boxes: int32 summed-volume table, boxes grown face by face": _reference_boxes,
     "2D exact Chamfer: the sweeps and masked sums of a few images in numpy": _torch_sweeps,
+    "2D exact Chamfer compiled (numba): Canny at boundary pixels, distances at the other edges only": _tensor_chamfer,
     "2D screen scores in numpy": _torch_screen,
     "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
     "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,

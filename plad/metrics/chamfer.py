@@ -106,6 +106,9 @@ _SWEEP_CHUNK = 1024
 _NUMPY_SWEEP = 256 * 66
 # masked sums over at most this many images run in numpy on the CPU (_masked_sums)
 _NUMPY_SUMS = 256
+# CD of images at most 64 pixels wide on the CPU through the compiled kernels of plad.metrics.chamfer_compiled
+# (the same numbers, a fraction of the work) when numba is there; False: always the tensor path
+_COMPILED = True
 
 
 # --- execution: chunks on a pool of single-threaded workers -------------------------
@@ -550,6 +553,27 @@ def _check_pair_shapes(pred: torch.Tensor, target: torch.Tensor) -> None:
         )
 
 
+def _compiled(device: torch.device, width: int):
+    """plad.metrics.chamfer_compiled where it applies (CPU, width <= 64, numba importable), else None."""
+    if not _COMPILED or device.type != "cpu":
+        return None
+    from plad.metrics import chamfer_compiled
+
+    if width > chamfer_compiled.MAX_WIDTH or not chamfer_compiled.available():
+        return None
+    return chamfer_compiled
+
+
+def _cd_from_sums(over_p: np.ndarray, counts_p: np.ndarray, over_t: np.ndarray, counts_t: torch.Tensor,
+                  bad_t: torch.Tensor | None, height: int, width: int) -> torch.Tensor:
+    """CD from the compiled kernels' exact int64 sums: the same float64 operations as the tensor path."""
+    counts_p_t = torch.from_numpy(counts_p)
+    cd = (_directed(torch.from_numpy(over_p.astype(np.float64)), counts_p_t)
+          + _directed(torch.from_numpy(over_t.astype(np.float64)), counts_t)) / 2
+    bad = _degenerate(counts_p_t, height, width) | (_degenerate(counts_t, height, width) if bad_t is None else bad_t)
+    return cd.masked_fill(bad, PENALTY)
+
+
 def chamfer(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """CSGNet's CD of each pair: bool (..., H, W) x 2 -> float64 (...).
 
@@ -560,8 +584,16 @@ def chamfer(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     p, lead = _as_batch(pred)
     t, _ = _as_batch(target.to(pred.device))
     n, height, width = p.shape
-    plan = _plan(height, width)
     device = p.device
+    compiled = _compiled(device, width)
+    if compiled is not None:
+        rows_p, rows_t = compiled.pack_rows(p.numpy()), compiled.pack_rows(t.numpy())
+        sums = np.zeros((n, 4), dtype=np.int64)  # sum of D_T over E_P, |E_P|, sum of D_P over E_T, |E_T|
+        _run([lambda a=a, b=b: compiled.pair_sums(rows_p[a:b], rows_t[a:b], width, sums[a:b])
+              for a, b in _spans(n, 2, device)], device)
+        out = _cd_from_sums(sums[:, 0], sums[:, 1], sums[:, 2], torch.from_numpy(sums[:, 3]), None, height, width)
+        return out.reshape(lead)
+    plan = _plan(height, width)
     out = torch.empty(n, dtype=torch.float64, device=device)
 
     def task(start: int, stop: int) -> None:
@@ -657,6 +689,21 @@ def chamfer_against(pred: torch.Tensor, features: TargetFeatures) -> torch.Tenso
         )
     n, k = pred.shape[:2]
     device = pred.device
+    compiled = _compiled(device, width) if features.edges.device == device else None
+    if compiled is not None:
+        rows_t = getattr(features, "_rows", None)
+        if rows_t is None:  # the targets' edge rows, packed once per TargetFeatures
+            rows_t = compiled.pack_rows(features.edges.permute(1, 0, 2).numpy())
+            object.__setattr__(features, "_rows", rows_t)
+        flat, _ = _as_batch(pred.reshape(n * k, height, width))
+        rows_p = compiled.pack_rows(flat.numpy()).reshape(n, k, height)
+        dist = features.dist.numpy()
+        sums = np.zeros((n, k, 3), dtype=np.int64)  # sum of D_T over E_P, |E_P|, sum of D_P over E_T
+        _run([lambda a=a, b=b: compiled.against_sums(rows_p[a:b], width, rows_t[a:b], dist[:, a:b], sums[a:b])
+              for a, b in _spans(n, k, device)], device)
+        out = _cd_from_sums(sums[..., 0], sums[..., 1], sums[..., 2], features.counts[:, None].expand(n, k),
+                            features.degenerate[:, None], height, width)
+        return out[:, 0] if single else out
     plan = _plan(height, width)
     out = torch.empty((n, k), dtype=torch.float64, device=device)
 

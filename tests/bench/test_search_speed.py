@@ -40,6 +40,12 @@ def test_the_baseline_runs_every_batch_through_the_batched_executors_and_puts_th
     with search_speed._baseline():
         assert boxes.grow_box is boxes_v0.grow_box
     assert boxes.grow_box is not boxes_v0.grow_box
+    import importlib
+
+    chamfer = importlib.import_module("plad.metrics.chamfer")
+    with search_speed._baseline():
+        assert chamfer._COMPILED is False          # the 2D Chamfer on its tensor path
+    assert chamfer._COMPILED is True
 
 
 def test_a_changed_program_or_value_is_not_identical():

@@ -485,3 +485,15 @@ def test_no_output_in_the_dvc_cache_is_also_tracked_by_git():
         both = sorted(o.def_path for st in repo.index.stages for o in st.outs
                       if o.use_cache and o.def_path in tracked)
     assert not both, f"in the DVC cache and tracked by git (git rm --cached them, .gitignore them): {both}"
+
+
+def test_compiled_caches_beside_the_code_are_no_dependency():
+    """Python's .pyc and numba's cached kernels (plad/metrics/__pycache__) are written beside the code on first
+    use: were they part of a folder's hash, every stage depending on plad/metrics would be stale after a run."""
+    from dvc.repo import Repo
+
+    with Repo(str(REPO)) as repo:
+        ignored = [repo.dvcignore.is_ignored(repo.fs, str(REPO / p)) for p in (
+            "plad/metrics/__pycache__/chamfer_compiled._canny-1.py311.nbi", "plad/__pycache__/layout.cpython-311.pyc",
+            "plad/metrics/chamfer_compiled.py", "plad/metrics/chamfer.py")]
+    assert ignored == [True, True, False, False]
