@@ -7,7 +7,9 @@ in the same process, single-threaded. The baseline is the straightforward
 per-program renderer of the test suite (``tests/reference/csg3d_render.py``:
 read the text, evaluate each primitive's inside test on all 32^3 voxel
 centers in float64, combine recursively). Our time includes unpacking to
-bool grids. With ``--sampler K`` the synthetic sampler's throughput (sampling,
+bool grids; on the CPU it runs the compiled kernels (``plad.domains.csg3d.compiled``) where numba is
+installed, and ``--numpy`` times the path before them (programs one at a time in numpy) instead. With
+``--sampler K`` the synthetic sampler's throughput (sampling,
 execution and rejection of degenerate programs) is measured on K programs too.
 The last line is ``ratio <ours/baseline>``.
 """
@@ -39,8 +41,16 @@ def main(argv: list[str] | None = None) -> None:
                         help="the slow baseline runs on the first N programs only")
     parser.add_argument("--sampler", type=int, default=0, help="also time sampling this many programs")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--numpy", action="store_true", help="time the numpy per-program path, not the compiled one")
     args = parser.parse_args(argv)
+    from plad import jit
+
+    jit.load()   # the compiled kernels from the first call, as a long process runs them once it has earned them
     torch.set_num_threads(1)
+    if args.numpy:
+        import importlib
+
+        importlib.import_module("plad.domains.csg3d.executor")._COMPILED = False
 
     from tests.reference.csg3d_render import render
 

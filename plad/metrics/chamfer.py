@@ -107,8 +107,12 @@ _NUMPY_SWEEP = 256 * 66
 # masked sums over at most this many images run in numpy on the CPU (_masked_sums)
 _NUMPY_SUMS = 256
 # CD of images at most 64 pixels wide on the CPU through the compiled kernels of plad.metrics.chamfer_compiled
-# (the same numbers, a fraction of the work) when numba is there; False: always the tensor path
-_COMPILED = True
+# (the same numbers, a tenth of the time) where numba is there: None when the process has earned it (plad.jit),
+# True from the first call, False never
+_COMPILED: bool | None = None
+# the tensor path's CPU seconds for a call (its fixed steps) and per pair, for plad.jit's rule
+_TENSOR_CALL_SECONDS = 3e-4
+_TENSOR_PAIR_SECONDS = 1e-4
 
 
 # --- execution: chunks on a pool of single-threaded workers -------------------------
@@ -553,15 +557,17 @@ def _check_pair_shapes(pred: torch.Tensor, target: torch.Tensor) -> None:
         )
 
 
-def _compiled(device: torch.device, width: int):
-    """plad.metrics.chamfer_compiled where it applies (CPU, width <= 64, numba importable), else None."""
-    if not _COMPILED or device.type != "cpu":
+def _compiled(device: torch.device, width: int, pairs: int):
+    """plad.metrics.chamfer_compiled where it applies (CPU, width <= 64, numba importable, plad.jit's rule for
+    a call of ``pairs`` pairs), else None."""
+    from plad import jit
+
+    seconds = _TENSOR_CALL_SECONDS + pairs * _TENSOR_PAIR_SECONDS
+    if device.type != "cpu" or width > 64 or not jit.use(_COMPILED, seconds):
         return None
     from plad.metrics import chamfer_compiled
 
-    if width > chamfer_compiled.MAX_WIDTH or not chamfer_compiled.available():
-        return None
-    return chamfer_compiled
+    return chamfer_compiled if chamfer_compiled.available() else None
 
 
 def _cd_from_sums(over_p: np.ndarray, counts_p: np.ndarray, over_t: np.ndarray, counts_t: torch.Tensor,
@@ -585,7 +591,7 @@ def chamfer(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     t, _ = _as_batch(target.to(pred.device))
     n, height, width = p.shape
     device = p.device
-    compiled = _compiled(device, width)
+    compiled = _compiled(device, width, n)
     if compiled is not None:
         rows_p, rows_t = compiled.pack_rows(p.numpy()), compiled.pack_rows(t.numpy())
         sums = np.zeros((n, 4), dtype=np.int64)  # sum of D_T over E_P, |E_P|, sum of D_P over E_T, |E_T|
@@ -689,7 +695,7 @@ def chamfer_against(pred: torch.Tensor, features: TargetFeatures) -> torch.Tenso
         )
     n, k = pred.shape[:2]
     device = pred.device
-    compiled = _compiled(device, width) if features.edges.device == device else None
+    compiled = _compiled(device, width, n * k) if features.edges.device == device else None
     if compiled is not None:
         rows_t = getattr(features, "_rows", None)
         if rows_t is None:  # the targets' edge rows, packed once per TargetFeatures

@@ -17,8 +17,9 @@ pixel x), and
   chamfer distance the sweeps compute.
 
 The kernels release the GIL (the module's thread pool runs chunks side by side). numba is optional: without it
-:func:`available` is False and :mod:`plad.metrics.chamfer` keeps its tensor path. Compiled code is cached beside
-this file (``cache=True``), so a process pays numba's compile once per install, later ones load it.
+:func:`available` is False and :mod:`plad.metrics.chamfer` keeps its tensor path; when a process switches to
+these kernels is :mod:`plad.jit`'s rule. Compiled code is cached beside this file (``cache=True``), so numba
+compiles once per install, later processes load it.
 """
 from __future__ import annotations
 
@@ -26,18 +27,22 @@ import numpy as np
 
 from plad.metrics.chamfer import STEP_DIAG, STEP_HV
 
-MAX_WIDTH = 64
-"""Widest image a row's uint64 holds."""
-
-try:  # optional: the tensor path is the fallback
+try:  # optional: plad.metrics.chamfer keeps its tensor path
     from numba import njit
-    from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 except ImportError:  # pragma: no cover - exercised where numba is absent
     njit = None
 
+MAX_WIDTH = 64
+"""Widest image a row's uint64 holds."""
+
+if njit is not None:
+    from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
+
+__all__ = ["MAX_WIDTH", "available", "pack_rows"]
+
 
 def available() -> bool:
-    """Whether the compiled kernels can run here (numba importable)."""
+    """Whether the kernels can run here (numba importable)."""
     return njit is not None
 
 

@@ -43,9 +43,11 @@ def test_the_baseline_runs_every_batch_through_the_batched_executors_and_puts_th
     import importlib
 
     chamfer = importlib.import_module("plad.metrics.chamfer")
+    executor = importlib.import_module("plad.domains.csg3d.executor")
     with search_speed._baseline():
         assert chamfer._COMPILED is False          # the 2D Chamfer on its tensor path
-    assert chamfer._COMPILED is True
+        assert executor._COMPILED is False         # 3D CSG's numpy path
+    assert chamfer._COMPILED is None and executor._COMPILED is None   # put back: the default rule (plad.jit)
 
 
 def test_a_changed_program_or_value_is_not_identical():

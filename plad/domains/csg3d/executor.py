@@ -75,6 +75,26 @@ def _as_int32(words: np.ndarray) -> torch.Tensor:
 
 _BYTE_BITS: dict[torch.device, torch.Tensor] = {}
 
+#: on the CPU, the per-program path and unpack run as compiled kernels (plad.domains.csg3d.compiled) where numba
+#: is installed, the same bits: None when the process has earned it (plad.jit), True from the first call, False
+#: never (the numpy and torch paths)
+_COMPILED: bool | None = None
+#: the numpy path's CPU seconds per program and unpack's per grid, for plad.jit's rule
+_NUMPY_PROGRAM_SECONDS = 7e-5
+_UNPACK_GRID_SECONDS = 3e-5
+
+
+def _compiled(device: torch.device, seconds: float):
+    """plad.domains.csg3d.compiled where it applies (CPU, numba importable, plad.jit's rule for a call whose
+    numpy or torch path takes about ``seconds``), else None."""
+    from plad import jit
+
+    if device.type != "cpu" or not jit.use(_COMPILED, seconds):
+        return None
+    from plad.domains.csg3d import compiled
+
+    return compiled if compiled.available() else None
+
 
 def unpack(words: torch.Tensor) -> torch.Tensor:
     """int32 (..., 32, 32) words -> bool (..., 32, 32, 32) indexed [x, y, z].
@@ -91,7 +111,12 @@ def unpack(words: torch.Tensor) -> torch.Tensor:
         bits = ((b[:, None] >> torch.arange(8)) & 1).to(torch.uint8)     # (256, 8) bit i of byte b
         _BYTE_BITS[dev] = bits.contiguous().view(torch.int64).squeeze(1).to(dev)
     as_bytes = words.contiguous().view(torch.uint8).reshape(-1)          # 4 bytes per word, low byte first
-    out = torch.index_select(_BYTE_BITS[dev], 0, as_bytes.int())         # (4 * words,) int64 = 8 bools each
+    kernels = _compiled(dev, as_bytes.numel() / 4096 * _UNPACK_GRID_SECONDS)
+    if kernels is not None:                                              # the same table, in a compiled loop
+        out = torch.empty(as_bytes.numel(), dtype=torch.int64)
+        kernels.unpack_into(as_bytes.numpy(), _BYTE_BITS[dev].numpy(), out.numpy())
+    else:
+        out = torch.index_select(_BYTE_BITS[dev], 0, as_bytes.int())     # (4 * words,) int64 = 8 bools each
     return out.view(torch.bool).reshape(*words.shape, RES)
 
 
@@ -240,6 +265,9 @@ class Executor:
         so the same bits, without the batched path's per-step tensor operations; primitives come from a cache of
         rendered grids (the misses rendered together by :func:`render_primitives`). None where a row does not
         end within its length (the batched path defines what such a row gives)."""
+        kernels = _compiled(programs.device, len(programs) * _NUMPY_PROGRAM_SECONDS)
+        if kernels is not None:
+            return self._run_compiled(kernels, programs, check_degenerate)
         if self._steps is None:
             T = _tables(torch.device("cpu"))
             self._steps = (T["delta"].tolist(), T["code"].tolist())
@@ -293,6 +321,21 @@ class Executor:
                     flags[r] = (np.array_equal(res, a) or np.array_equal(res, b) or not res.any())
                 stack.append(res)
             out[r] = stack[-1]
+        return torch.from_numpy(out).reshape(-1, RES, RES), torch.from_numpy(flags)
+
+    @staticmethod
+    def _run_compiled(kernels, programs: torch.Tensor,
+                      check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """:meth:`_run_each` as one compiled call (plad.domains.csg3d.compiled): the same bits, no primitive cache
+        (rendering a primitive there costs about what looking it up costs here)."""
+        T = {k: v.numpy() for k, v in _tables(torch.device("cpu")).items()}
+        rows = programs.clamp(min=0).to(torch.int64).contiguous().numpy()
+        out = np.empty((len(rows), _WORDS), dtype=np.int32)
+        flags = np.zeros(len(rows), dtype=bool)
+        status = kernels.run_programs(rows, T["delta"], T["code"], T["value"], T["ell"], T["fixed"], T["interval"],
+                                      T["column"], check_degenerate, out, flags)
+        if status != kernels.DONE:
+            return None
         return torch.from_numpy(out).reshape(-1, RES, RES), torch.from_numpy(flags)
 
     @staticmethod

@@ -1,5 +1,8 @@
 """The compiled CPU Chamfer (plad.metrics.chamfer_compiled) gives the tensor path's numbers bit for bit.
 
+Here every call is compiled (``chamfer._COMPILED`` True); by default a process compiles once it has earned it
+(plad.jit, tests/plad/test_jit.py).
+
 Its edges against the tensor Canny (itself tested against OpenCV), its CD and chamfer_against against the tensor
 path with the compiled kernels switched off (``chamfer._COMPILED``), on every kind of image of test_chamfer, at
 64 x 64 and at other sizes, degenerate pairs included.
@@ -21,6 +24,12 @@ chamfer_module = importlib.import_module("plad.metrics.chamfer")
 def test_numba_is_there():
     # a dependency of the project: without it the compiled path would silently never run
     assert chamfer_compiled.available()
+
+
+@pytest.fixture(autouse=True)
+def always_compiled(monkeypatch):
+    """Every call here compiled (the default waits until a process has earned it, plad.jit)."""
+    monkeypatch.setattr(chamfer_module, "_COMPILED", True)
 
 
 def _tensor_path(monkeypatch, fn, *args):

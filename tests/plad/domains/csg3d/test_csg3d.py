@@ -221,14 +221,16 @@ def _with_pseudo_primitives(programs: list[list[int]], seed: int) -> list[list[i
     return out
 
 
+@pytest.mark.parametrize("compiled", [False, True])
 @pytest.mark.parametrize("check_degenerate", [False, True])
-def test_cpu_programs_run_one_at_a_time_to_the_same_bits(check_degenerate, monkeypatch):
-    """On the CPU programs run one at a time in numpy, in chunks of ``EACH_CHUNK``: the same words and degenerate
-    flags as the batched path, for sampled programs, random grammar programs, rewriting's pseudo primitives and
-    any padding, in batches of 1 to 256 and all at once, through a primitive cache that fills, is cleared and is
-    reused."""
+def test_cpu_programs_run_one_at_a_time_to_the_same_bits(check_degenerate, compiled, monkeypatch):
+    """On the CPU programs run one at a time, in chunks of ``EACH_CHUNK``, in numpy or compiled
+    (plad.domains.csg3d.compiled): the same words and degenerate flags as the batched path, for sampled programs,
+    random grammar programs, rewriting's pseudo primitives and any padding, in batches of 1 to 256 and all at
+    once; in numpy through a primitive cache that fills, is cleared and is reused."""
     import plad.domains.csg3d.executor as ex
 
+    monkeypatch.setattr(ex, "_COMPILED", compiled)
     monkeypatch.setattr(ex, "PRIMITIVE_CACHE", 500)     # small: the cache is cleared during the test
     programs = DOMAIN.sample(200, np.random.default_rng(3)) + masked_rollouts(DOMAIN, 150, seed=9)
     programs += _with_pseudo_primitives(programs[:120], seed=4)
@@ -246,20 +248,30 @@ def test_cpu_programs_run_one_at_a_time_to_the_same_bits(check_degenerate, monke
                 assert torch.equal(words, want_words[start:start + size])
                 assert torch.equal(flags, want_flags[start:start + size])
         assert not calls                                # every batch ran program by program
-    assert 0 < len(each._primitives) <= 500 + 256 * 12
+    if compiled:
+        assert each._primitives == {}                   # compiled, primitives are rendered where they are drawn
+    else:
+        assert 0 < len(each._primitives) <= 500 + 256 * 12
 
 
-def test_a_row_that_does_not_end_runs_batched():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_row_that_does_not_end_runs_batched(compiled, monkeypatch):
     """A row whose program does not end within its length: the per-program path leaves it to the batched one."""
+    import plad.domains.csg3d.executor as ex
+
+    monkeypatch.setattr(ex, "_COMPILED", compiled)
     ids = DOMAIN.parse("union cuboid 16 16 16 8 8 8 ellipsoid 10 10 10 6 6 6")
     cut = torch.tensor([ids[:-3], ids[:-3]])
     assert Executor(TABLE)._run_each(cut, False) is None
     assert torch.equal(Executor(TABLE).run_packed(cut)[0], Executor(TABLE, per_program=False).run_packed(cut)[0])
 
 
-def test_a_pickled_executor_leaves_its_primitive_cache_behind():
+def test_a_pickled_executor_leaves_its_primitive_cache_behind(monkeypatch):
     import pickle
 
+    import plad.domains.csg3d.executor as ex
+
+    monkeypatch.setattr(ex, "_COMPILED", False)         # the numpy path keeps the cache
     executor = Executor(TABLE)
     programs = pad_programs(DOMAIN.sample(20, np.random.default_rng(5)))
     want = executor.run_packed(programs)[0]
