@@ -63,6 +63,19 @@ def _numpy_csg3d() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _products_voxelizer() -> Iterator[None]:
+    """ShapeAssembly's voxel counts as float32 matrix products, as before their compiled kernels."""
+    import importlib
+
+    voxels = importlib.import_module("plad.data.datasets.partnet.voxels")
+    saved, voxels._COMPILED = voxels._COMPILED, False
+    try:
+        yield
+    finally:
+        voxels._COMPILED = saved
+
+
+@contextlib.contextmanager
 def _batched_csg2d() -> Iterator[None]:
     """Every 2D CSG batch through the batched stack machine, as before the per-program path: the domain's executor
     and the rewrite space's extended copy of it (pseudo draws), made once per process."""
@@ -175,6 +188,7 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "2D screen scores in numpy": _torch_screen,
     "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
     "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,
+    "ShapeAssembly's voxel counts compiled (numba), voxel by voxel over each cuboid": _products_voxelizer,
 }
 
 

@@ -44,10 +44,13 @@ def test_the_baseline_runs_every_batch_through_the_batched_executors_and_puts_th
 
     chamfer = importlib.import_module("plad.metrics.chamfer")
     executor = importlib.import_module("plad.domains.csg3d.executor")
+    voxels = importlib.import_module("plad.data.datasets.partnet.voxels")
     with search_speed._baseline():
         assert chamfer._COMPILED is False          # the 2D Chamfer on its tensor path
         assert executor._COMPILED is False         # 3D CSG's numpy path
-    assert chamfer._COMPILED is None and executor._COMPILED is None   # put back: the default rule (plad.jit)
+        assert voxels._COMPILED is False           # ShapeAssembly's counts as matrix products
+    # put back: the default rule (plad.jit)
+    assert chamfer._COMPILED is None and executor._COMPILED is None and voxels._COMPILED is None
 
 
 def test_a_changed_program_or_value_is_not_identical():

@@ -84,6 +84,10 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
     starts = np.searchsorted(own[rotated], np.arange(batch + 1))           # shape b's: rotated[starts[b]:starts[b+1]]
     grids = torch.empty((batch, res, res, res), dtype=torch.bool)
     unique = np.zeros(n, dtype=np.int64)
+    kernels = _compiled(len(fast))
+    if kernels is not None:
+        _counted(kernels, masks, slots, fast, rotated, starts, p, u, half, lo, hi, own, centers, grids, unique)
+        return grids, torch.from_numpy(unique)
     step = max(1, min(_CHUNK_SHAPES, _CHUNK_CUBOIDS // max(slots.shape[1], 1)))
     for s0 in range(0, batch, step):
         s1 = min(s0 + step, batch)
@@ -111,6 +115,62 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
             (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
             unique[m] = int((inside & (count[own[m] - s0, x0:x1, y0:y1, z0:z1] == 1)).sum())
     return grids, torch.from_numpy(unique)
+
+
+#: the grid-aligned cuboids' counts in compiled kernels (plad.data.datasets.partnet.voxels_compiled) where numba
+#: is installed, the same booleans and unique counts: None when the process has earned it (plad.jit), True from
+#: the first call, False never (the matrix products)
+_COMPILED: bool | None = None
+#: the matrix products' CPU seconds per aligned cuboid, for plad.jit's rule
+_TENSOR_CUBOID_SECONDS = 1e-4
+
+
+def _compiled(cuboids: int):
+    from plad import jit
+
+    if not jit.use(_COMPILED, cuboids * _TENSOR_CUBOID_SECONDS):
+        return None
+    from plad.data.datasets.partnet import voxels_compiled
+
+    return voxels_compiled if voxels_compiled.available() else None
+
+
+def _counted(kernels, masks, slots, fast, rotated, starts, p, u, half, lo, hi, own, centers, grids, unique) -> None:
+    """voxelize_batch's counts as integers, in chunks of shapes: the aligned cuboids added voxel by voxel
+    (compiled), the rotated ones' boxes as before; then the grids and every cuboid's unique voxels."""
+    batch, res = grids.shape[0], grids.shape[1]
+    out = grids.numpy().reshape(batch, res ** 3)
+    for s0 in range(0, batch, _CHUNK_SHAPES):
+        s1 = min(s0 + _CHUNK_SHAPES, batch)
+        count = np.zeros((s1 - s0, res, res, res), dtype=np.int32)
+        chunk = np.ascontiguousarray(slots[s0:s1])
+        kernels.add_aligned(masks, chunk, count)
+        mine = rotated[starts[s0]:starts[s1]]
+        # compiled: finite axes, and not the original's separable branch with two axes along one grid axis (on
+        # which it failed): those take the numpy test, as before
+        ok = np.isfinite(u[mine]).all((1, 2))
+        separable = np.count_nonzero(u[mine], axis=(1, 2)) == 3
+        ok &= ~separable | (np.sort(np.abs(np.nan_to_num(u[mine])).argmax(2), 1) == np.arange(3)).all(1)
+        compiled, shape_of = mine[ok], own[mine[ok]] - s0
+        kernels.rotated(p, u, half, lo, hi, centers, compiled, shape_of, count, unique, False)
+        boxes = []
+        for m in mine[~ok]:
+            inside = _rotated_box(p[m], u[m], half[m], lo[m], hi[m], centers)
+            if inside is not None:
+                (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+                count[own[m] - s0, x0:x1, y0:y1, z0:z1] += inside
+                boxes.append((m, inside))
+        np.greater(count.reshape(s1 - s0, -1), 0, out=out[s0:s1])
+        total = np.zeros(chunk.shape, dtype=np.int64)
+        kernels.unique_aligned(masks, chunk, count, total)
+        real = chunk >= 0
+        unique[fast[chunk[real]]] = total[real]
+        once = np.zeros(len(compiled), dtype=np.int64)
+        kernels.rotated(p, u, half, lo, hi, centers, compiled, shape_of, count, once, True)
+        unique[compiled] = once
+        for m, inside in boxes:
+            (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+            unique[m] = int((inside & (count[own[m] - s0, x0:x1, y0:y1, z0:z1] == 1)).sum())
 
 
 #: bounds on one chunk of :func:`voxelize_batch`: at most this many shapes ((S, res^3) float32 counts, 2 MiB at

@@ -1,5 +1,8 @@
 """voxelize_batch: the batched voxelizer gives exactly the original per-cuboid voxelizer's grids and unique
-counts (tests/reference/shapeassembly_v0.py, the frozen original) on every kind of input."""
+counts (tests/reference/shapeassembly_v0.py, the frozen original) on every kind of input, with its counts as
+matrix products and in the compiled kernels (plad.data.datasets.partnet.voxels_compiled)."""
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -8,6 +11,18 @@ from plad.data.datasets.partnet.voxels import MIN_HALF, normalization, normalize
 from plad.domains import get_domain
 from tests.grammar import masked_rollouts
 from tests.reference import shapeassembly_v0 as v0
+
+voxels = importlib.import_module("plad.data.datasets.partnet.voxels")
+
+
+@pytest.fixture(autouse=True, params=[False, True], ids=["products", "compiled"])
+def compiled(request, monkeypatch):
+    """Every test on both paths of the counts (the default picks by plad.jit's rule)."""
+    if request.param:
+        from plad.data.datasets.partnet import voxels_compiled
+
+        assert voxels_compiled.available()
+    monkeypatch.setattr(voxels, "_COMPILED", request.param)
 
 
 def assert_same(cuboids: np.ndarray, owner: np.ndarray, batch: int, **kw) -> tuple[torch.Tensor, torch.Tensor]:
