@@ -595,7 +595,8 @@ def chamfer(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     if compiled is not None:
         rows_p, rows_t = compiled.pack_rows(p.numpy()), compiled.pack_rows(t.numpy())
         sums = np.zeros((n, 4), dtype=np.int64)  # sum of D_T over E_P, |E_P|, sum of D_P over E_T, |E_T|
-        _run([lambda a=a, b=b: compiled.pair_sums(rows_p[a:b], rows_t[a:b], width, sums[a:b])
+        _run([lambda a=a, b=b: compiled.pair_sums(rows_p[a:b], rows_t[a:b], width, STEP_HV, STEP_DIAG,
+                                                           sums[a:b])
               for a, b in _spans(n, 2, device)], device)
         out = _cd_from_sums(sums[:, 0], sums[:, 1], sums[:, 2], torch.from_numpy(sums[:, 3]), None, height, width)
         return out.reshape(lead)
@@ -705,7 +706,8 @@ def chamfer_against(pred: torch.Tensor, features: TargetFeatures) -> torch.Tenso
         rows_p = compiled.pack_rows(flat.numpy()).reshape(n, k, height)
         dist = features.dist.numpy()
         sums = np.zeros((n, k, 3), dtype=np.int64)  # sum of D_T over E_P, |E_P|, sum of D_P over E_T
-        _run([lambda a=a, b=b: compiled.against_sums(rows_p[a:b], width, rows_t[a:b], dist[:, a:b], sums[a:b])
+        _run([lambda a=a, b=b: compiled.against_sums(rows_p[a:b], width, rows_t[a:b], dist[:, a:b],
+                                                              STEP_HV, STEP_DIAG, sums[a:b])
               for a, b in _spans(n, k, device)], device)
         out = _cd_from_sums(sums[..., 0], sums[..., 1], sums[..., 2], features.counts[:, None].expand(n, k),
                             features.degenerate[:, None], height, width)

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from plad.metrics.chamfer import STEP_DIAG, STEP_HV
-
 try:  # optional: plad.metrics.chamfer keeps its tensor path
     from numba import njit
 except ImportError:  # pragma: no cover - exercised where numba is absent
@@ -64,8 +62,6 @@ def pack_rows(images: np.ndarray) -> np.ndarray:
 
 if njit is not None:
     _ONE = np.uint64(1)
-    _A = np.int64(STEP_HV)
-    _B = np.int64(STEP_DIAG)
     _FAR = np.int64(1) << np.int64(62)
 
     @njit(cache=True, nogil=True)
@@ -198,18 +194,19 @@ if njit is not None:
         return best
 
     @njit(cache=True, nogil=True)
-    def _distance(edges, height, y, x):
-        """Exact chamfer distance (units) from (y, x) to the nearest set bit of edges (uint64 (H,), not all zero)."""
+    def _distance(edges, height, y, x, a, b):
+        """Exact chamfer distance (units) from (y, x) to the nearest set bit of edges (uint64 (H,), not all zero),
+        with straight steps a and diagonal steps b (units)."""
         best = _FAR
         v = 0
-        while v < height and v * _A < best:
+        while v < height and v * a < best:
             for yy in (y - v, y + v):
                 if 0 <= yy < height and edges[yy]:
                     u = _nearest_in_row(edges[yy], x)
                     if u >= v:
-                        d = (u - v) * _A + v * _B
+                        d = (u - v) * a + v * b
                     else:
-                        d = (v - u) * _A + u * _B
+                        d = (v - u) * a + u * b
                     if d < best:
                         best = d
                 if v == 0:
@@ -218,7 +215,7 @@ if njit is not None:
         return best
 
     @njit(cache=True, nogil=True)
-    def _sum_over(edges, other, height):
+    def _sum_over(edges, other, height, a, b):
         """Sum over the set bits of edges of the distance to other's set bits (0 where other has none)."""
         for y in range(height):
             if other[y]:
@@ -231,7 +228,7 @@ if njit is not None:
             while bits:
                 x = np.int64(trailing_zeros(bits))
                 bits &= bits - _ONE
-                total += _distance(other, height, y, x)
+                total += _distance(other, height, y, x, a, b)
         return total
 
     @njit(cache=True, nogil=True)
@@ -242,9 +239,9 @@ if njit is not None:
         return total
 
     @njit(cache=True, nogil=True)
-    def pair_sums(pred, target, width, out):
+    def pair_sums(pred, target, width, a, b, out):
         """For each pair of images (uint64 rows (n, H) each): out[i] = (sum of D_T over E_P, |E_P|,
-        sum of D_P over E_T, |E_T|), int64, distances in units."""
+        sum of D_P over E_T, |E_T|), int64, distances in units of steps a (straight) and b (diagonal)."""
         n, height = pred.shape
         mag = np.zeros((height + 2, width + 2), dtype=np.int8)
         cls = np.empty((height, width), dtype=np.int8)
@@ -254,9 +251,9 @@ if njit is not None:
         for i in range(n):
             _canny(pred[i], height, width, mag, cls, cand, e_p)
             _canny(target[i], height, width, mag, cls, cand, e_t)
-            out[i, 0] = _sum_over(e_p, e_t, height)
+            out[i, 0] = _sum_over(e_p, e_t, height, a, b)
             out[i, 1] = _count(e_p, height)
-            out[i, 2] = _sum_over(e_t, e_p, height)
+            out[i, 2] = _sum_over(e_t, e_p, height, a, b)
             out[i, 3] = _count(e_t, height)
 
     @njit(cache=True, nogil=True)
@@ -270,7 +267,7 @@ if njit is not None:
             _canny(images[i], height, width, mag, cls, cand, out[i])
 
     @njit(cache=True, nogil=True)
-    def against_sums(pred, width, target_edges, target_dist, out):
+    def against_sums(pred, width, target_edges, target_dist, a, b, out):
         """K candidates of each of N targets: pred uint64 (N, K, H); target_edges uint64 (N, H); target_dist int
         (H, N, W), the targets' distance transforms in units. out[i, k] = (sum of D_T over E_P, |E_P|, sum of
         D_P over E_T), int64."""
@@ -291,4 +288,4 @@ if njit is not None:
                         over_p += np.int64(target_dist[y, i, x])
                 out[i, j, 0] = over_p
                 out[i, j, 1] = _count(e_p, height)
-                out[i, j, 2] = _sum_over(target_edges[i], e_p, height)
+                out[i, j, 2] = _sum_over(target_edges[i], e_p, height, a, b)

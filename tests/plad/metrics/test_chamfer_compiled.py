@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from plad.metrics import chamfer_compiled
-from tests.plad.metrics.test_chamfer import every_image, random_images
+from tests.binary_images import every_image, random_images
 
 chamfer_module = importlib.import_module("plad.metrics.chamfer")
 
