@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import importlib
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -23,6 +24,19 @@ import torch
 from plad.data.files import load_prepared
 from plad.domains import bits, get_domain
 from plad.rewrite import refine, search, search_config
+
+
+@contextlib.contextmanager
+def _set(module: str, name: str, value: object) -> Iterator[None]:
+    """``module.name = value`` for the duration, then back: a speedup's switch (the compiled kernels' is
+    ``_COMPILED``, False: the path before them)."""
+    found = importlib.import_module(module)
+    saved = getattr(found, name)
+    setattr(found, name, value)
+    try:
+        yield
+    finally:
+        setattr(found, name, saved)
 
 
 @contextlib.contextmanager
@@ -47,32 +61,6 @@ def _batched_csg3d() -> Iterator[None]:
     finally:
         executor.per_program = saved
         executor._primitives.clear()
-
-
-@contextlib.contextmanager
-def _numpy_csg3d() -> Iterator[None]:
-    """3D CSG's per-program path in numpy, as before its compiled kernels (plad.domains.csg3d.compiled)."""
-    import importlib
-
-    executor = importlib.import_module("plad.domains.csg3d.executor")
-    saved, executor._COMPILED = executor._COMPILED, False
-    try:
-        yield
-    finally:
-        executor._COMPILED = saved
-
-
-@contextlib.contextmanager
-def _products_voxelizer() -> Iterator[None]:
-    """ShapeAssembly's voxel counts as float32 matrix products, as before their compiled kernels."""
-    import importlib
-
-    voxels = importlib.import_module("plad.data.datasets.partnet.voxels")
-    saved, voxels._COMPILED = voxels._COMPILED, False
-    try:
-        yield
-    finally:
-        voxels._COMPILED = saved
 
 
 @contextlib.contextmanager
@@ -118,19 +106,6 @@ def _torch_sweeps() -> Iterator[None]:
         yield
     finally:
         chamfer._NUMPY_SWEEP, chamfer._NUMPY_SUMS = saved
-
-
-@contextlib.contextmanager
-def _tensor_chamfer() -> Iterator[None]:
-    """2D's exact Chamfer on the tensor path, as before its compiled kernels (plad.metrics.chamfer_compiled)."""
-    import importlib
-
-    chamfer = importlib.import_module("plad.metrics.chamfer")
-    saved, chamfer._COMPILED = chamfer._COMPILED, False
-    try:
-        yield
-    finally:
-        chamfer._COMPILED = saved
 
 
 @contextlib.contextmanager
@@ -180,15 +155,18 @@ def _reference_placements() -> Iterator[None]:
 SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "numpy popcount in the 2D and 3D screens": _scalar_popcount,
     "3D CSG programs run one at a time on the CPU (numpy, cached primitives)": _batched_csg3d,
-    "3D CSG's one-at-a-time path and unpack compiled (numba)": _numpy_csg3d,
+    "3D CSG's one-at-a-time path and unpack compiled (numba)":
+        functools.partial(_set, "plad.domains.csg3d.executor", "_COMPILED", False),
     "2D CSG programs run one at a time on the CPU (a canvas as one Python integer)": _batched_csg2d,
     "3D residual boxes: int32 summed-volume table, boxes grown face by face": _reference_boxes,
     "2D exact Chamfer: the sweeps and masked sums of a few images in numpy": _torch_sweeps,
-    "2D exact Chamfer compiled (numba): Canny at boundary pixels, distances at the other edges only": _tensor_chamfer,
+    "2D exact Chamfer compiled (numba): Canny at boundary pixels, distances at the other edges only":
+        functools.partial(_set, "plad.metrics.chamfer", "_COMPILED", False),
     "2D screen scores in numpy": _torch_screen,
     "ShapeAssembly's executor: prefix cache, grid-aligned voxelizing": _original_shapeassembly_executor,
     "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,
-    "ShapeAssembly's voxel counts compiled (numba), voxel by voxel over each cuboid": _products_voxelizer,
+    "ShapeAssembly's voxel counts compiled (numba), voxel by voxel over each cuboid":
+        functools.partial(_set, "plad.data.datasets.partnet.voxels", "_COMPILED", False),
 }
 
 

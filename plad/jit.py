@@ -12,6 +12,7 @@ Nothing here imports numba.
 """
 from __future__ import annotations
 
+import importlib
 import importlib.util
 
 #: tensor-path seconds a process spends before it loads the compiled kernels (about what loading them costs)
@@ -41,6 +42,25 @@ def use(mode: bool | None, seconds: float) -> bool:
     _spent += seconds
     _loaded = _spent >= LOAD_SECONDS
     return _loaded
+
+
+def compiler():
+    """numba's ``njit``, or None where numba cannot be imported: what a kernel module decorates its kernels with
+    (importing numba, so only kernel modules call it)."""
+    try:
+        from numba import njit
+    except ImportError:
+        return None
+    return njit
+
+
+def kernels(module: str, mode: bool | None, seconds: float):
+    """The kernel module ``module`` (one whose ``njit`` came from :func:`compiler`) where a call whose tensor path
+    would take about ``seconds`` should run compiled (:func:`use`) and can, else None."""
+    if not use(mode, seconds):
+        return None
+    found = importlib.import_module(module)
+    return found if found.njit is not None else None
 
 
 def load() -> None:

@@ -562,12 +562,9 @@ def _compiled(device: torch.device, width: int, pairs: int):
     a call of ``pairs`` pairs), else None."""
     from plad import jit
 
-    seconds = _TENSOR_CALL_SECONDS + pairs * _TENSOR_PAIR_SECONDS
-    if device.type != "cpu" or width > 64 or not jit.use(_COMPILED, seconds):
+    if device.type != "cpu" or width > 64:
         return None
-    from plad.metrics import chamfer_compiled
-
-    return chamfer_compiled if chamfer_compiled.available() else None
+    return jit.kernels("plad.metrics.chamfer_compiled", _COMPILED, _TENSOR_CALL_SECONDS + pairs * _TENSOR_PAIR_SECONDS)
 
 
 def _cd_from_sums(over_p: np.ndarray, counts_p: np.ndarray, over_t: np.ndarray, counts_t: torch.Tensor,

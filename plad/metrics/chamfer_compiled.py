@@ -25,10 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # optional: plad.metrics.chamfer keeps its tensor path
-    from numba import njit
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    njit = None
+from plad.jit import compiler
+
+njit = compiler()   # None without numba: the caller keeps its tensor path
 
 MAX_WIDTH = 64
 """Widest image a row's uint64 holds."""
@@ -239,13 +238,17 @@ if njit is not None:
         return total
 
     @njit(cache=True, nogil=True)
+    def _canny_scratch(height, width):
+        """_canny's scratch for images of height x width: mag (zeroed), cls and cand."""
+        return (np.zeros((height + 2, width + 2), dtype=np.int8), np.empty((height, width), dtype=np.int8),
+                np.empty(height, dtype=np.uint64))
+
+    @njit(cache=True, nogil=True)
     def pair_sums(pred, target, width, a, b, out):
         """For each pair of images (uint64 rows (n, H) each): out[i] = (sum of D_T over E_P, |E_P|,
         sum of D_P over E_T, |E_T|), int64, distances in units of steps a (straight) and b (diagonal)."""
         n, height = pred.shape
-        mag = np.zeros((height + 2, width + 2), dtype=np.int8)
-        cls = np.empty((height, width), dtype=np.int8)
-        cand = np.empty(height, dtype=np.uint64)
+        mag, cls, cand = _canny_scratch(height, width)
         e_p = np.empty(height, dtype=np.uint64)
         e_t = np.empty(height, dtype=np.uint64)
         for i in range(n):
@@ -260,9 +263,7 @@ if njit is not None:
     def edges_of(images, width, out):
         """Canny edges of images (uint64 rows (n, H)) into out (n, H)."""
         n, height = images.shape
-        mag = np.zeros((height + 2, width + 2), dtype=np.int8)
-        cls = np.empty((height, width), dtype=np.int8)
-        cand = np.empty(height, dtype=np.uint64)
+        mag, cls, cand = _canny_scratch(height, width)
         for i in range(n):
             _canny(images[i], height, width, mag, cls, cand, out[i])
 
@@ -272,9 +273,7 @@ if njit is not None:
         (H, N, W), the targets' distance transforms in units. out[i, k] = (sum of D_T over E_P, |E_P|, sum of
         D_P over E_T), int64."""
         n, k, height = pred.shape
-        mag = np.zeros((height + 2, width + 2), dtype=np.int8)
-        cls = np.empty((height, width), dtype=np.int8)
-        cand = np.empty(height, dtype=np.uint64)
+        mag, cls, cand = _canny_scratch(height, width)
         e_p = np.empty(height, dtype=np.uint64)
         for i in range(n):
             for j in range(k):

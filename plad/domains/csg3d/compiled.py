@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # optional: the executor keeps its numpy and torch paths
-    from numba import njit
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    njit = None
+from plad.jit import compiler
+
+njit = compiler()   # None without numba: the caller keeps its tensor path
 
 __all__ = ["available", "run_programs", "unpack_into"]
 

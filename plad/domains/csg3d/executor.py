@@ -31,6 +31,7 @@ program's stack is a (depth, 1024) slice of one int32 tensor.
 """
 from __future__ import annotations
 
+import functools
 import sys
 
 import numpy as np
@@ -89,11 +90,7 @@ def _compiled(device: torch.device, seconds: float):
     numpy or torch path takes about ``seconds``), else None."""
     from plad import jit
 
-    if device.type != "cpu" or not jit.use(_COMPILED, seconds):
-        return None
-    from plad.domains.csg3d import compiled
-
-    return compiled if compiled.available() else None
+    return jit.kernels("plad.domains.csg3d.compiled", _COMPILED, seconds) if device.type == "cpu" else None
 
 
 def unpack(words: torch.Tensor) -> torch.Tensor:
@@ -164,6 +161,14 @@ def _tables(device: torch.device) -> dict[str, torch.Tensor]:
             interval=_as_int32(_interval_lut()).reshape(-1),
             column=_as_int32(_column_lut()).reshape(-1)).items()}
     return _TABLES[device]
+
+
+@functools.cache
+def _cpu_tables() -> tuple[np.ndarray, ...]:
+    """The CPU tables the compiled per-program path reads, as numpy arrays in its argument order (views of
+    :func:`_tables`' tensors, made once)."""
+    T = _tables(torch.device("cpu"))
+    return tuple(T[k].numpy() for k in ("delta", "code", "value", "ell", "fixed", "interval", "column"))
 
 
 def _render_cuboids(params: torch.Tensor, T: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -328,12 +333,10 @@ class Executor:
                       check_degenerate: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
         """:meth:`_run_each` as one compiled call (plad.domains.csg3d.compiled): the same bits, no primitive cache
         (rendering a primitive there costs about what looking it up costs here)."""
-        T = {k: v.numpy() for k, v in _tables(torch.device("cpu")).items()}
         rows = programs.clamp(min=0).to(torch.int64).contiguous().numpy()
         out = np.empty((len(rows), _WORDS), dtype=np.int32)
         flags = np.zeros(len(rows), dtype=bool)
-        status = kernels.run_programs(rows, T["delta"], T["code"], T["value"], T["ell"], T["fixed"], T["interval"],
-                                      T["column"], check_degenerate, out, flags)
+        status = kernels.run_programs(rows, *_cpu_tables(), check_degenerate, out, flags)
         if status != kernels.DONE:
             return None
         return torch.from_numpy(out).reshape(-1, RES, RES), torch.from_numpy(flags)

@@ -96,13 +96,7 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
         # rotated ones' boxes added one by one
         counts = torch.bmm(x.transpose(1, 2), yz)
         count = counts.numpy().reshape(s1 - s0, res, res, res)            # shares memory with counts
-        boxes = []
-        for m in rotated[starts[s0]:starts[s1]]:
-            inside = _rotated_box(p[m], u[m], half[m], lo[m], hi[m], centers)
-            if inside is not None:
-                (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
-                count[own[m] - s0, x0:x1, y0:y1, z0:z1] += inside
-                boxes.append((m, inside))
+        boxes = _add_boxes(rotated[starts[s0]:starts[s1]], p, u, half, lo, hi, own, centers, count, s0)
         torch.gt(counts, 0, out=grids[s0:s1].view(s1 - s0, res, res * res))
         # voxels covered exactly once in their shape belong uniquely to their cuboid; for aligned cuboid k with
         # E = (count == 1) (res, res^2): unique_k = sum_x x_k[x] (E @ yz_k)[x]
@@ -111,10 +105,28 @@ def voxelize_batch(cuboids: torch.Tensor, owner: torch.Tensor, batch: int, min_h
         total = (per * x.transpose(1, 2)).sum(1).long().numpy()            # (S, K), exact integers
         real = slots[s0:s1] >= 0
         unique[fast[slots[s0:s1][real]]] = total[real]
-        for m, inside in boxes:
-            (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
-            unique[m] = int((inside & (count[own[m] - s0, x0:x1, y0:y1, z0:z1] == 1)).sum())
+        _box_unique(boxes, lo, hi, own, count, s0, unique)
     return grids, torch.from_numpy(unique)
+
+
+def _add_boxes(cubes, p, u, half, lo, hi, own, centers, count, s0: int) -> list[tuple[int, np.ndarray]]:
+    """The rotated cuboids ``cubes`` tested one at a time over their boxes (:func:`_rotated_box`), each box added
+    into count (S, res, res, res) of the shapes from s0 on; returns (cuboid, box) of the nonempty ones."""
+    boxes = []
+    for m in cubes:
+        inside = _rotated_box(p[m], u[m], half[m], lo[m], hi[m], centers)
+        if inside is not None:
+            (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+            count[own[m] - s0, x0:x1, y0:y1, z0:z1] += inside
+            boxes.append((m, inside))
+    return boxes
+
+
+def _box_unique(boxes, lo, hi, own, count, s0: int, unique: np.ndarray) -> None:
+    """unique[m] for each (cuboid m, box) of :func:`_add_boxes`: its voxels its shape covers exactly once."""
+    for m, inside in boxes:
+        (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
+        unique[m] = int((inside & (count[own[m] - s0, x0:x1, y0:y1, z0:z1] == 1)).sum())
 
 
 #: the grid-aligned cuboids' counts in compiled kernels (plad.data.datasets.partnet.voxels_compiled) where numba
@@ -126,13 +138,10 @@ _TENSOR_CUBOID_SECONDS = 1e-4
 
 
 def _compiled(cuboids: int):
+    """plad.data.datasets.partnet.voxels_compiled by plad.jit's rule for ``cuboids`` aligned cuboids, else None."""
     from plad import jit
 
-    if not jit.use(_COMPILED, cuboids * _TENSOR_CUBOID_SECONDS):
-        return None
-    from plad.data.datasets.partnet import voxels_compiled
-
-    return voxels_compiled if voxels_compiled.available() else None
+    return jit.kernels("plad.data.datasets.partnet.voxels_compiled", _COMPILED, cuboids * _TENSOR_CUBOID_SECONDS)
 
 
 def _counted(kernels, masks, slots, fast, rotated, starts, p, u, half, lo, hi, own, centers, grids, unique) -> None:
@@ -144,7 +153,8 @@ def _counted(kernels, masks, slots, fast, rotated, starts, p, u, half, lo, hi, o
         s1 = min(s0 + _CHUNK_SHAPES, batch)
         count = np.zeros((s1 - s0, res, res, res), dtype=np.int32)
         chunk = np.ascontiguousarray(slots[s0:s1])
-        kernels.add_aligned(masks, chunk, count)
+        total = np.zeros(chunk.shape, dtype=np.int64)
+        kernels.aligned(masks, chunk, count, total, False)
         mine = rotated[starts[s0]:starts[s1]]
         # compiled: finite axes, and not the original's separable branch with two axes along one grid axis (on
         # which it failed): those take the numpy test, as before
@@ -152,25 +162,16 @@ def _counted(kernels, masks, slots, fast, rotated, starts, p, u, half, lo, hi, o
         separable = np.count_nonzero(u[mine], axis=(1, 2)) == 3
         ok &= ~separable | (np.sort(np.abs(np.nan_to_num(u[mine])).argmax(2), 1) == np.arange(3)).all(1)
         compiled, shape_of = mine[ok], own[mine[ok]] - s0
-        kernels.rotated(p, u, half, lo, hi, centers, compiled, shape_of, count, unique, False)
-        boxes = []
-        for m in mine[~ok]:
-            inside = _rotated_box(p[m], u[m], half[m], lo[m], hi[m], centers)
-            if inside is not None:
-                (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
-                count[own[m] - s0, x0:x1, y0:y1, z0:z1] += inside
-                boxes.append((m, inside))
+        once = np.zeros(len(compiled), dtype=np.int64)
+        kernels.rotated(p, u, half, lo, hi, centers, compiled, shape_of, count, once, False)
+        boxes = _add_boxes(mine[~ok], p, u, half, lo, hi, own, centers, count, s0)
         np.greater(count.reshape(s1 - s0, -1), 0, out=out[s0:s1])
-        total = np.zeros(chunk.shape, dtype=np.int64)
-        kernels.unique_aligned(masks, chunk, count, total)
+        kernels.aligned(masks, chunk, count, total, True)
         real = chunk >= 0
         unique[fast[chunk[real]]] = total[real]
-        once = np.zeros(len(compiled), dtype=np.int64)
         kernels.rotated(p, u, half, lo, hi, centers, compiled, shape_of, count, once, True)
         unique[compiled] = once
-        for m, inside in boxes:
-            (x0, y0, z0), (x1, y1, z1) = lo[m], hi[m] + 1
-            unique[m] = int((inside & (count[own[m] - s0, x0:x1, y0:y1, z0:z1] == 1)).sum())
+        _box_unique(boxes, lo, hi, own, count, s0, unique)
 
 
 #: bounds on one chunk of :func:`voxelize_batch`: at most this many shapes ((S, res^3) float32 counts, 2 MiB at

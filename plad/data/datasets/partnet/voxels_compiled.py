@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # optional: the voxelizer keeps its tensor path
-    from numba import njit
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    njit = None
+from plad.jit import compiler
 
-__all__ = ["add_aligned", "available", "rotated", "unique_aligned"]
+njit = compiler()   # None without numba: the caller keeps its tensor path
+
+__all__ = ["aligned", "available", "rotated"]
 
 
 def available() -> bool:
@@ -25,29 +24,10 @@ def available() -> bool:
 
 if njit is not None:
     @njit(cache=True, nogil=True)
-    def add_aligned(masks, slots, counts):
-        """masks bool (M, 3, res): per-axis masks; slots int64 (S, K): the masks' rows of each shape's cuboids (-1:
-        none); counts int32 (S, res, res, res) += each cuboid's voxels."""
-        n_shapes, k_max = slots.shape
-        res = masks.shape[2]
-        for s in range(n_shapes):
-            for k in range(k_max):
-                j = slots[s, k]
-                if j < 0:
-                    continue
-                for x in range(res):
-                    if not masks[j, 0, x]:
-                        continue
-                    for y in range(res):
-                        if not masks[j, 1, y]:
-                            continue
-                        for z in range(res):
-                            if masks[j, 2, z]:
-                                counts[s, x, y, z] += 1
-
-    @njit(cache=True, nogil=True)
-    def unique_aligned(masks, slots, counts, out):
-        """out int64 (S, K): how many of each cuboid's voxels its shape covers exactly once."""
+    def aligned(masks, slots, counts, out, unique_pass):
+        """The grid-aligned cuboids: masks bool (M, 3, res), their per-axis masks; slots int64 (S, K), the masks'
+        rows of each shape's cuboids (-1: none). Without unique_pass, counts int32 (S, res, res, res) += each
+        cuboid's voxels; with it, out int64 (S, K) = how many of them its shape covers exactly once."""
         n_shapes, k_max = slots.shape
         res = masks.shape[2]
         for s in range(n_shapes):
@@ -62,9 +42,13 @@ if njit is not None:
                             if not masks[j, 1, y]:
                                 continue
                             for z in range(res):
-                                if masks[j, 2, z] and counts[s, x, y, z] == 1:
-                                    total += 1
-                out[s, k] = total
+                                if masks[j, 2, z]:
+                                    if unique_pass:
+                                        total += counts[s, x, y, z] == 1
+                                    else:
+                                        counts[s, x, y, z] += 1
+                if unique_pass:
+                    out[s, k] = total
 
     @njit(cache=True, nogil=True)
     def rotated(p, u, half, lo, hi, centers, cubes, shape_of, counts, out, unique_pass):
