@@ -26,9 +26,10 @@ import csv
 import io
 import json
 import math
+import os
 import random
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ import torch
 
 from plad.config import ConfigError
 from plad.fsutil import atomic_write_text
-from plad.layout import LAST, SUMMARY, Layout
+from plad.layout import BEST, LAST, SUMMARY, Layout
 from plad.learn.train import TrainConfig, resumes
 
 #: the method key of a taught network (its run folder and its evaluation)
@@ -70,6 +71,17 @@ class GrowConfig:
 
 
 @dataclass
+class ThenConfig:
+    """A second teaching segment (issue 58): once the first has ended, its best network grown again and taught
+    on the same labels with the schedule restarted (the rate, its halvings and the patience as ``train`` gives
+    them), ``max_epochs`` more epochs. The first segment keeps its folder, ``taught/first/``; the second is
+    the stage's network, ``taught/best.pt``."""
+
+    grow: GrowConfig = field(default_factory=GrowConfig)
+    max_epochs: int = 10
+
+
+@dataclass
 class TeachConfig:
     """Params ``teach.<domain>`` (stage ``teach@<domain>``)."""
 
@@ -98,9 +110,11 @@ class TeachConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     #: grow the starting network before teaching (issue 58: the network's size at equal steps from the same start)
     grow: GrowConfig = field(default_factory=GrowConfig)
-    #: wall-clock safety net in minutes (null: none): the epochs fix the work
+    #: wall-clock safety net in minutes (null: none), for each segment: the epochs fix the work
     max_minutes: float | None = None
     train: TrainConfig = field(default_factory=TrainConfig)
+    #: a second segment from the first's best network (null: none)
+    then: ThenConfig | None = None
 
     def __post_init__(self) -> None:
         from plad.device import check_precision
@@ -192,9 +206,11 @@ def _fingerprint(cfg: TeachConfig, labels_sha256: str, init_digest: str, n: int)
     # the plain loss (near_smoothing 0) keeps the fingerprint of the runs before the key existed
     fingerprint["config"]["train"] = {k: v for k, v in asdict(cfg.train).items()
                                       if k != "max_epochs" and not (k == "near_smoothing" and not v)}
-    # likewise a start that is not grown
+    # likewise a start that is not grown; a segment's work is its own (a first segment's is the same work
+    # whether or not a second follows it)
     if not cfg.grow.asked():
         fingerprint["config"].pop("grow")
+    fingerprint["config"].pop("then")
     return fingerprint
 
 
@@ -206,9 +222,77 @@ def _history(path: Path, last: Path, fingerprint: dict) -> list[dict]:
         return [dict(r) for r in csv.DictReader(fh)]
 
 
+#: the first segment's folder inside the run folder, where a second segment follows it (``then``)
+FIRST = "first"
+#: the files of a segment's folder (what moves when a finished run becomes the first of two segments)
+SEGMENT_FILES = (LAST, BEST, HISTORY_FILE, SUMMARY)
+
+
 def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -> dict:
     """Teach one domain's network, from the checkpoint ``start`` (what ``cfg.init`` names), on its search labels;
-    returns the summary (a pure function of the config and the files it names: labels, prepared shapes, start)."""
+    returns the summary (a pure function of the config and the files it names: labels, prepared shapes, start).
+
+    With ``cfg.then``, two segments: the first (``cfg`` without ``then``) in ``taught/first/``, where a run
+    made before ``then`` was set is moved (its work is the same, so it continues or stands as it ended); then
+    the second from the first's best network, in ``taught/`` itself. The summary is the second's, with the
+    first's beside it (``first``) and one history of both (seconds added up)."""
+    out = layout.finetune_dir(cfg.domain, TAUGHT)
+    if cfg.then is None:
+        return _segment(cfg, start, layout, out, log)
+    first_dir = out / FIRST
+    _check_sizes(cfg, start)
+    first = _segment(replace(cfg, then=None), start, layout, first_dir, log, adopt=out, publish=False)
+    second_cfg = replace(cfg, then=None, grow=cfg.then.grow, init=str(first_dir / BEST),
+                         train=replace(cfg.train, max_epochs=cfg.then.max_epochs))
+    log(f"teach {cfg.domain}: the second segment, from the first's best (epoch {first['best_unit']})")
+    second = _segment(second_cfg, first_dir / BEST, layout, out, log, publish=False,
+                      where=f"teach.{cfg.domain}.then")
+    first_seconds = first["history"][-1]["seconds"] if first["history"] else 0.0
+    summary = {**second, "init": str(cfg.init), "init_network_sha256": first["init_network_sha256"],
+               **({"grow": cfg.grow.asked()} if cfg.grow.asked() else {}),
+               "then": {"grow": cfg.then.grow.asked(), "max_epochs": cfg.then.max_epochs,
+                        "start_network_sha256": second["init_network_sha256"]},
+               "first": {k: v for k, v in first.items() if k != "history"},
+               "units": first["units"] + second["units"], "best_unit": first["units"] + second["best_unit"],
+               "train_seconds": round(first["train_seconds"] + second["train_seconds"], 1),
+               "steps": first["steps"] + second["steps"], "max_epochs": cfg.train.max_epochs,
+               "history": first["history"] + [{**r, "seconds": first_seconds + r["seconds"]}
+                                              for r in second["history"]]}
+    if not cfg.grow.asked():
+        summary.pop("grow", None)
+    text = json.dumps(summary, indent=2) + "\n"
+    atomic_write_text(out / SUMMARY, text)
+    atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), text)
+    return {k: v for k, v in summary.items() if k != "history"}
+
+
+def _check_sizes(cfg: TeachConfig, start: Path) -> None:
+    """Both segments' sizes against the start's before any training (ConfigError naming the key)."""
+    from plad.model.checkpoint import load_model
+    from plad.model.grow import grown_config
+
+    model_cfg = load_model(start, expect_domain=cfg.domain)[0].cfg
+    for where, grow in ((f"teach.{cfg.domain}.grow", cfg.grow), (f"teach.{cfg.domain}.then.grow", cfg.then.grow)):
+        try:
+            model_cfg = grown_config(model_cfg, **grow.asked())
+        except ValueError as err:
+            raise ConfigError(f"{where}: {err}") from None
+
+
+def _adopt(source: Path, out: Path, fingerprint: dict) -> None:
+    """Move a segment's files from ``source`` into ``out`` where ``source`` holds this very work and ``out``
+    does not (a run made before a second segment was asked for becomes the first segment)."""
+    if resumes(out / LAST, fingerprint) or not (source / LAST).exists() or not resumes(source / LAST, fingerprint):
+        return
+    for name in SEGMENT_FILES:
+        if (source / name).exists():
+            os.replace(source / name, out / name)
+
+
+def _segment(cfg: TeachConfig, start: Path, layout: Layout, out: Path, log=print, adopt: Path | None = None,
+             publish: bool = True, where: str | None = None) -> dict:
+    """One teaching segment into ``out``; the summary with its history. ``adopt``: a folder whose run of
+    this work moves into ``out`` first; ``publish``: also write ``results/finetune/<domain>/taught.json``."""
     from plad.data.files import evenly_spaced_index, load_prepared, load_split
     from plad.device import resolve_device, resolve_precision
     from plad.domains import get_domain
@@ -224,7 +308,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     from plad.rewrite.pool import pad_programs
 
     started = time.monotonic()
-    where = f"teach.{cfg.domain}"
+    where = where or f"teach.{cfg.domain}"
     check(cfg, where)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -251,7 +335,6 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
             raise ConfigError(f"{where}.grow: {err}") from None
         log(f"teach {cfg.domain}: the start grown to " + ", ".join(f"{k} {v}" for k, v in cfg.grow.asked().items()))
 
-    out = layout.finetune_dir(cfg.domain, TAUGHT)
     out.mkdir(parents=True, exist_ok=True)
     metric = domain.metric
     weights = {k: w for k, w in cfg.sources.items() if w > 0}
@@ -269,6 +352,8 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
         return row
 
     fingerprint = _fingerprint(cfg, sha256_file(labels_file), network_digest(start), n)
+    if adopt is not None:
+        _adopt(adopt, out, fingerprint)
     history_path = out / HISTORY_FILE
     rows = _history(history_path, out / LAST, fingerprint)
 
@@ -302,5 +387,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
                "provenance": stamp(cfg, started)}
     text = json.dumps(summary, indent=2) + "\n"
     atomic_write_text(out / SUMMARY, text)
+    if not publish:
+        return summary
     atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), text)
     return {k: v for k, v in summary.items() if k != "history"}

@@ -39,7 +39,7 @@ def tracked_teach(cfg: TeachConfig, ctx: StageContext = StageContext()) -> dict:
 
     from plad.domains import get_domain
     from plad.layout import BEST, SUMMARY
-    from plad.learn.teach import HISTORY_FILE, teach
+    from plad.learn.teach import FIRST, HISTORY_FILE, teach
     from plad.tracking import StageRun
 
     out = ctx.layout.finetune_dir(cfg.domain, TAUGHT)
@@ -49,18 +49,25 @@ def tracked_teach(cfg: TeachConfig, ctx: StageContext = StageContext()) -> dict:
             print(line, file=sys.stderr, flush=True)
 
         summary = teach(cfg, init_checkpoint(cfg), ctx.layout, log=log)
-        with open(out / HISTORY_FILE, newline="") as fh:
-            history = list(csv.DictReader(fh))
-        for row in history:
-            numbers = {}
-            for k, v in row.items():
-                try:
-                    x = float(v)
-                except (TypeError, ValueError):
+        # one curve: a first segment's epochs, then the second's after them (its epoch 0, the first's best, left out)
+        segments = [(out / FIRST / HISTORY_FILE, 0)] if "first" in summary else []
+        segments.append((out / HISTORY_FILE, summary["first"]["units"] if "first" in summary else 0))
+        for path, offset in segments:
+            with open(path, newline="") as fh:
+                history = list(csv.DictReader(fh))
+            for row in history:
+                unit = int(float(row["unit"]))
+                if offset and unit == 0:
                     continue
-                if np.isfinite(x) and k != "unit":
-                    numbers[k] = x
-            run.log_metrics(numbers, step=int(float(row["unit"])))
+                numbers = {}
+                for k, v in row.items():
+                    try:
+                        x = float(v)
+                    except (TypeError, ValueError):
+                        continue
+                    if np.isfinite(x) and k != "unit":
+                        numbers[k] = x
+                run.log_metrics(numbers, step=offset + unit)
         metric = get_domain(cfg.domain).metric
         run.log_result(metric=metric.name, higher_is_better=metric.higher_is_better, val=summary.get("val"),
                        train_seconds=summary.get("train_seconds"), stopped=summary["stopped"])

@@ -102,11 +102,16 @@ def summary_curve(path: Path, summary: dict) -> dict[str, list[float]]:
 
 def run_name(summary: dict) -> str:
     """How a run is told apart from others of its domain in one panel: the sizes its start was grown to
-    (``teach.<domain>.grow``), else the start's own size."""
+    (``teach.<domain>.grow``), else the start's own size, and those of a second segment (``then``)."""
+    def sizes(grow: dict) -> str:
+        return ", ".join(f"{k} {'-'.join(map(str, v)) if isinstance(v, list) else v}" for k, v in grow.items())
+
     grow = summary.get("grow")
-    if not grow:
-        return "the start's size"
-    return "grown: " + ", ".join(f"{k} {'-'.join(map(str, v)) if isinstance(v, list) else v}" for k, v in grow.items())
+    name = "grown: " + sizes(grow) if grow else "the start's size"
+    then = summary.get("then")
+    if isinstance(then, dict) and then.get("grow"):
+        name += "; then " + sizes(then["grow"])
+    return name
 
 
 def plot(histories: list[Path], output: Path, against: str = "hours") -> None:

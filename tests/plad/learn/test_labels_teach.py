@@ -209,3 +209,95 @@ def test_a_grown_start_begins_where_the_start_is_and_trains_the_larger_network(t
     assert again["units"] == 3
     with pytest.raises(ConfigError, match=rf"teach\.csg2d\.grow: dim_ff {small.cfg.dim_ff - 1}: the network has"):
         teach(_teach_cfg(init, grow={"dim_ff": small.cfg.dim_ff - 1}), init, layout, log=lambda line: None)
+
+
+def _digest(path) -> str:
+    from plad.model.checkpoint import network_digest
+
+    return network_digest(path)
+
+
+def test_a_second_segment_grows_the_first_ones_best_and_a_finished_run_becomes_its_first(tmp_path, tiny_checkpoint):
+    """teach.<domain>.then: the first segment in taught/first/ (a run made before ``then`` was asked for moves
+    there untouched and is not trained again), the second from its best network, grown, in taught/ (the
+    stage's network); one summary and history of both; the same work from scratch gives the same network."""
+    from plad.model.checkpoint import load_model
+
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    small, _ = load_model(init)
+    then = {"grow": {"n_layers": small.cfg.n_layers + 1}, "max_epochs": 2}
+    quiet = lambda line: None   # noqa: E731
+
+    layout = sampled_project(tmp_path / "adopted")
+    label_project(layout)
+    teach(_teach_cfg(init), init, layout, log=quiet)
+    out = layout.finetune_dir("csg2d", "taught")
+    first_best = (out / "best.pt").read_bytes()
+    first_history = (out / "history.csv").read_text()
+    summary = teach(_teach_cfg(init, then=then), init, layout, log=quiet)
+    assert (out / "first" / "best.pt").read_bytes() == first_best            # moved, not trained again
+    assert (out / "first" / "history.csv").read_text() == first_history
+    with open(out / "history.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["unit"]) for r in rows] == [0, 1, 2]
+    first = json.loads((out / "first" / "summary.json").read_text())
+    assert float(rows[0]["val"]) == pytest.approx(first["val"], abs=1e-9)    # the second starts at the first's best
+    best, _ = load_model(out / "best.pt")
+    assert best.cfg.n_layers == small.cfg.n_layers + 1
+    assert summary["units"] == 4 and summary["first"]["units"] == 2 and summary["best_unit"] > 2
+    assert summary["then"]["grow"] == {"n_layers": small.cfg.n_layers + 1} and summary["then"]["max_epochs"] == 2
+    assert summary["then"]["start_network_sha256"] == _digest(out / "first" / "best.pt")
+    assert summary["init_network_sha256"] == _digest(init) and summary["init"] == str(init)
+    committed = json.loads(layout.finetune_summary("csg2d", "taught").read_text())
+    seconds = [r["seconds"] for r in committed["history"]]
+    assert len(seconds) == 4 and seconds == sorted(seconds) and committed["units"] == 4
+    # a rerun finds both segments finished: nothing is trained again
+    again = teach(_teach_cfg(init, then=then), init, layout, log=quiet)
+    assert again["units"] == 4 and (out / "first" / "best.pt").read_bytes() == first_best
+
+    fresh = sampled_project(tmp_path / "fresh")
+    label_project(fresh)
+    teach(_teach_cfg(init, then=then), init, fresh, log=quiet)
+    fresh_out = fresh.finetune_dir("csg2d", "taught")
+    assert _digest(fresh_out / "first" / "best.pt") == _digest(out / "first" / "best.pt")
+    assert _digest(fresh_out / "best.pt") == _digest(out / "best.pt")
+    # a size the second segment would shrink to is an error before any training
+    shrink = sampled_project(tmp_path / "shrink")
+    label_project(shrink)
+    with pytest.raises(ConfigError, match=rf"teach\.csg2d\.then\.grow: dim_ff {small.cfg.dim_ff - 1}: the network"):
+        teach(_teach_cfg(init, then={"grow": {"dim_ff": small.cfg.dim_ff - 1}}), init, shrink, log=quiet)
+    assert not (shrink.finetune_dir("csg2d", "taught") / "first").exists()
+
+
+def test_the_teach_stage_logs_both_segments_as_one_curve(tmp_path, tiny_checkpoint, monkeypatch):
+    """The stage's MLflow run: the first segment's epochs 0..n, then the second's after them (its epoch 0, the
+    first's best network again, left out)."""
+    import mlflow
+
+    from plad.model.checkpoint import load_model
+    from plad.stages import StageContext
+    from plad.stages.teach import tracked_teach
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.setenv("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    mlflow.set_tracking_uri(uri)
+    layout = sampled_project(tmp_path / "project")
+    label_project(layout)
+    init = tiny_checkpoint(tmp_path / "init.pt")
+    small_layers = load_model(init)[0].cfg.n_layers
+    cfg = _teach_cfg(init, then={"grow": {"n_layers": small_layers + 1}, "max_epochs": 2})
+    params = tmp_path / "project" / "params.yaml"
+    params.write_text("profile: tests\n")
+    try:
+        summary = tracked_teach(cfg, StageContext(layout, params))
+    finally:
+        while mlflow.active_run() is not None:
+            mlflow.end_run()
+    run_id = json.loads((layout.finetune_dir("csg2d", "taught") / "mlflow_run.json").read_text())["run_id"]
+    history = mlflow.MlflowClient().get_metric_history(run_id, "val")
+    assert sorted(m.step for m in history) == [0, 1, 2, 3, 4] and summary["units"] == 4
+    steps = {m.step: m.value for m in history}
+    with open(layout.finetune_dir("csg2d", "taught") / "history.csv", newline="") as fh:
+        second = list(csv.DictReader(fh))
+    assert steps[3] == pytest.approx(float(second[1]["val"])) and steps[4] == pytest.approx(float(second[2]["val"]))

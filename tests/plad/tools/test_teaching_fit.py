@@ -59,6 +59,8 @@ def test_runs_of_one_domain_share_its_panel_named_by_their_growth(tmp_path):
     assert run_name({}) == "the start's size"
     assert run_name({"grow": {"enc_channels": [8, 16, 32, 64], "n_layers": 4}}) == \
         "grown: enc_channels 8-16-32-64, n_layers 4"
+    assert run_name({"grow": {"enc_channels": [8, 16, 32, 64]}, "then": {"grow": {"n_layers": 5, "dim_ff": 512}}}) \
+        == "grown: enc_channels 8-16-32-64; then n_layers 5, dim_ff 512"
     for against in ("epoch", "hours"):
         out = tmp_path / f"{against}.png"
         assert main([*paths, "-o", str(out), "--against", against]) == 0
