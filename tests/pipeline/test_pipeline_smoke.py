@@ -355,13 +355,20 @@ def test_smoke_repro_labels_the_training_shapes_and_teaches_a_network(smoke_run)
 
     work, *_ = smoke_run
     teach = yaml.safe_load((REPO_ROOT / "params.yaml").read_text())["teach"]
+    smoke = yaml.safe_load((REPO_ROOT / "profiles" / "smoke.yaml").read_text())["teach"]
     for domain in DOMAINS:
         init = (teach.get(domain) or {}).get("init", teach["base"]["init"])
         labels = json.loads((work / "data" / "labels" / f"{domain}.json").read_text())
         assert labels["n"] == 12 and labels["rescored_max_difference"] == 0.0 and labels["chunks"] == 2
         taught = json.loads((work / "results" / "finetune" / domain / "taught.json").read_text())
-        assert taught["key"] == "taught" and taught["units"] == 2 and taught["labels"] == 12
+        # a second segment where params.yaml asks for one (teach.<domain>.then), of the smoke profile's epochs
+        then = (teach.get(domain) or {}).get("then")
+        more = (smoke.get(domain) or {})["then"]["max_epochs"] if then else 0
+        assert taught["key"] == "taught" and taught["units"] == 2 + more and taught["labels"] == 12
         assert taught["init"] == init and taught["stopped"] == "max_epochs"
+        if then:
+            assert taught["first"]["units"] == 2 and taught["then"]["grow"] == then["grow"]
+            assert (work / "runs" / "finetune" / domain / "taught" / "first" / "best.pt").is_file()
         for key in ("taught", "taught_refined"):
             metrics = json.loads((work / "results" / "eval" / key / domain / "metrics.json").read_text())
             assert metrics["method"] == "taught" and metrics["test"]["n"] > 0
