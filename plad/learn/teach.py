@@ -238,16 +238,26 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
     first's beside it (``first``) and one history of both (seconds added up)."""
     out = layout.finetune_dir(cfg.domain, TAUGHT)
     if cfg.then is None:
-        return _segment(cfg, start, layout, out, log)
+        summary = _segment(cfg, start, layout, out, log)
+    else:
+        summary = _two_segments(cfg, start, layout, out, log)
+        atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), json.dumps(summary, indent=2) + "\n")
+    return {k: v for k, v in summary.items() if k != "history"}
+
+
+def _two_segments(cfg: TeachConfig, start: Path, layout: Layout, out: Path, log) -> dict:
+    """The first segment in ``out/first/`` (adopting a finished run of it from ``out``), the second in ``out``;
+    the summary of both."""
     first_dir = out / FIRST
     _check_sizes(cfg, start)
-    first = _segment(replace(cfg, then=None), start, layout, first_dir, log, adopt=out, publish=False)
+    first = _segment(replace(cfg, then=None), start, layout, first_dir, log, adopt=out)
     second_cfg = replace(cfg, then=None, grow=cfg.then.grow, init=str(first_dir / BEST),
                          train=replace(cfg.train, max_epochs=cfg.then.max_epochs))
     log(f"teach {cfg.domain}: the second segment, from the first's best (epoch {first['best_unit']})")
-    second = _segment(second_cfg, first_dir / BEST, layout, out, log, publish=False,
-                      where=f"teach.{cfg.domain}.then")
+    second = _segment(second_cfg, first_dir / BEST, layout, out, log, where=f"teach.{cfg.domain}.then")
     first_seconds = first["history"][-1]["seconds"] if first["history"] else 0.0
+    # the stage's start was grown by the first segment's sizes (``grow``), not the second's
     summary = {**second, "init": str(cfg.init), "init_network_sha256": first["init_network_sha256"],
                **({"grow": cfg.grow.asked()} if cfg.grow.asked() else {}),
                "then": {"grow": cfg.then.grow.asked(), "max_epochs": cfg.then.max_epochs,
@@ -260,10 +270,7 @@ def teach(cfg: TeachConfig, start: Path, layout: Layout = Layout(), log=print) -
                                               for r in second["history"]]}
     if not cfg.grow.asked():
         summary.pop("grow", None)
-    text = json.dumps(summary, indent=2) + "\n"
-    atomic_write_text(out / SUMMARY, text)
-    atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), text)
-    return {k: v for k, v in summary.items() if k != "history"}
+    return summary
 
 
 def _check_sizes(cfg: TeachConfig, start: Path) -> None:
@@ -290,9 +297,9 @@ def _adopt(source: Path, out: Path, fingerprint: dict) -> None:
 
 
 def _segment(cfg: TeachConfig, start: Path, layout: Layout, out: Path, log=print, adopt: Path | None = None,
-             publish: bool = True, where: str | None = None) -> dict:
-    """One teaching segment into ``out``; the summary with its history. ``adopt``: a folder whose run of
-    this work moves into ``out`` first; ``publish``: also write ``results/finetune/<domain>/taught.json``."""
+             where: str | None = None) -> dict:
+    """One teaching segment into ``out`` (its ``summary.json`` there); the summary with its history.
+    ``adopt``: a folder whose run of this work moves into ``out`` first."""
     from plad.data.files import evenly_spaced_index, load_prepared, load_split
     from plad.device import resolve_device, resolve_precision
     from plad.domains import get_domain
@@ -385,9 +392,5 @@ def _segment(cfg: TeachConfig, start: Path, layout: Layout, out: Path, log=print
                "history": [{k: v for k, v in r.items() if k in ("epoch", "val", "fit", "fit_wide", "train_loss",
                                                                  "seconds")} for r in result.history],
                "provenance": stamp(cfg, started)}
-    text = json.dumps(summary, indent=2) + "\n"
-    atomic_write_text(out / SUMMARY, text)
-    if not publish:
-        return summary
-    atomic_write_text(layout.finetune_summary(cfg.domain, TAUGHT), text)
-    return {k: v for k, v in summary.items() if k != "history"}
+    atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2) + "\n")
+    return summary

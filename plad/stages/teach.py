@@ -32,10 +32,23 @@ def init_checkpoint(cfg: TeachConfig) -> Path:
     return Path(cfg.init)
 
 
+def _numbers(row: dict) -> dict[str, float]:
+    """The finite numbers of a history row but its epoch."""
+    import math
+
+    numbers = {}
+    for k, v in row.items():
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(x) and k != "unit":
+            numbers[k] = x
+    return numbers
+
+
 def tracked_teach(cfg: TeachConfig, ctx: StageContext = StageContext()) -> dict:
     import csv
-
-    import numpy as np
 
     from plad.domains import get_domain
     from plad.layout import BEST, SUMMARY
@@ -50,24 +63,16 @@ def tracked_teach(cfg: TeachConfig, ctx: StageContext = StageContext()) -> dict:
 
         summary = teach(cfg, init_checkpoint(cfg), ctx.layout, log=log)
         # one curve: a first segment's epochs, then the second's after them (its epoch 0, the first's best, left out)
-        segments = [(out / FIRST / HISTORY_FILE, 0)] if "first" in summary else []
-        segments.append((out / HISTORY_FILE, summary["first"]["units"] if "first" in summary else 0))
-        for path, offset in segments:
+        first = summary.get("first")
+        curves = [(out / FIRST / HISTORY_FILE, 0), (out / HISTORY_FILE, first["units"])] if first else \
+            [(out / HISTORY_FILE, 0)]
+        for path, offset in curves:
             with open(path, newline="") as fh:
-                history = list(csv.DictReader(fh))
-            for row in history:
+                rows = list(csv.DictReader(fh))
+            for row in rows:
                 unit = int(float(row["unit"]))
-                if offset and unit == 0:
-                    continue
-                numbers = {}
-                for k, v in row.items():
-                    try:
-                        x = float(v)
-                    except (TypeError, ValueError):
-                        continue
-                    if np.isfinite(x) and k != "unit":
-                        numbers[k] = x
-                run.log_metrics(numbers, step=offset + unit)
+                if not (offset and unit == 0):
+                    run.log_metrics(_numbers(row), step=offset + unit)
         metric = get_domain(cfg.domain).metric
         run.log_result(metric=metric.name, higher_is_better=metric.higher_is_better, val=summary.get("val"),
                        train_seconds=summary.get("train_seconds"), stopped=summary["stopped"])
