@@ -87,8 +87,9 @@ class TeachConfig:
 
     domain: str = field(kw_only=True)
     #: where training starts: "pretrained" (the domain's shipped SP network), "search_seeded" (the domain's
-    #: search-seeded LEST+ST+WS network, kept as ``plad/shipped/<domain>/search_seeded.pt``) or the path of a
-    #: checkpoint. Never the shipped model: shipping this stage's own network would change its start
+    #: search-seeded LEST+ST+WS network, kept as ``plad/shipped/<domain>/search_seeded.pt``), "taught" (a taught
+    #: network kept as it was shipped, ``plad/shipped/<domain>/taught.pt``: a run that continues it) or the path
+    #: of a checkpoint. Never the shipped model: shipping this stage's own network would change its start
     init: str = "pretrained"
     device: str = "auto"
     #: arithmetic of the training forward passes (:mod:`plad.device`); decoding stays float32

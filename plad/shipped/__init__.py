@@ -586,27 +586,38 @@ def describe_totals(model: ShippedModel) -> str:
     return f"{t.get('epochs', '?')} epochs, {t.get('shapes_seen', 0) / 1e6:.2f} M shapes, {hours}"
 
 
-#: the index of the networks teaching may start from (``teach.<domain>.init: search_seeded``): each domain's
-#: search-seeded LEST+ST+WS network as it was shipped before a taught network replaced it, kept in a file of its
-#: own so that shipping the taught network does not change the start of the stage that made it
-SEARCH_SEEDED_INDEX = "search_seeded.json"
+#: the indexes of the networks teaching may start from (``teach.<domain>.init``), kept in files of their own so
+#: that shipping a taught network does not change the start of the stage that made it: ``search_seeded``, each
+#: domain's search-seeded LEST+ST+WS network as it was shipped before a taught network replaced it; ``taught``,
+#: a taught network as it was shipped, the start of a later teaching run that continues it (a fresh clone
+#: rebuilds that run without training its earlier ones again; the index names the commit and run it came from)
+KEPT_STARTS = {"search_seeded": "search_seeded.json", "taught": "taught.json"}
+SEARCH_SEEDED_INDEX = KEPT_STARTS["search_seeded"]
 
 
-def search_seeded_checkpoint(domain: str, folder: Path | None = None) -> Path:
-    """The search-seeded network of ``domain`` that ``teach.<domain>.init: search_seeded`` starts from, verified
-    against the sha256 its index names; ShipError naming the file when it is missing or differs."""
+def kept_checkpoint(domain: str, name: str, folder: Path | None = None) -> Path:
+    """The kept network ``name`` (:data:`KEPT_STARTS`) of ``domain`` that ``teach.<domain>.init: <name>`` starts
+    from, verified against the sha256 its index names; ShipError naming the file when it is missing or
+    differs."""
     folder = Path(folder) if folder is not None else shipped_dir()
-    index_path = folder / SEARCH_SEEDED_INDEX
+    index_path = folder / KEPT_STARTS[name]
+    what = name.replace("_", "-")
     try:
         entry = json.loads(index_path.read_text())["models"][domain]
     except FileNotFoundError:
-        raise ShipError(f"{index_path}: missing (the index of the search-seeded networks)") from None
+        raise ShipError(f"{index_path}: missing (the index of the {what} networks)") from None
     except (ValueError, KeyError, TypeError):
-        raise ShipError(f"{index_path}: no search-seeded network of {domain} is indexed") from None
+        raise ShipError(f"{index_path}: no {what} network of {domain} is indexed") from None
     path = folder / entry["file"]
     if not path.is_file():
-        raise ShipError(f"{path}: missing (the search-seeded {domain} network {index_path.name} names)")
+        raise ShipError(f"{path}: missing (the {what} {domain} network {index_path.name} names)")
     got = sha256_file(path)
     if got != entry["sha256"]:
         raise ShipError(f"{path}: sha256 {got[:12]} differs from {entry['sha256'][:12]} in {index_path.name}")
     return path
+
+
+def search_seeded_checkpoint(domain: str, folder: Path | None = None) -> Path:
+    """The search-seeded network of ``domain`` that ``teach.<domain>.init: search_seeded`` starts from
+    (:func:`kept_checkpoint`)."""
+    return kept_checkpoint(domain, "search_seeded", folder)

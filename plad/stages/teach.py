@@ -15,20 +15,21 @@ from plad.stages import StageContext, stage_main
 
 
 def init_checkpoint(cfg: TeachConfig) -> Path:
-    """The checkpoint teaching starts from (``init``): the shipped SP network ("pretrained"), the search-seeded
-    network ("search_seeded", a file of its own so that shipping the taught network leaves the start as it was)
-    or a path."""
+    """The checkpoint teaching starts from (``init``): the shipped SP network ("pretrained"), a kept network
+    (:data:`plad.shipped.KEPT_STARTS`: "search_seeded", or "taught", a taught network kept as it was shipped, which
+    a longer run continues; each a file of its own so that shipping the taught network leaves the start as it
+    was) or a path."""
     from plad.config import ConfigError
-    from plad.shipped import pretrained_checkpoint, search_seeded_checkpoint
+    from plad.shipped import KEPT_STARTS, kept_checkpoint, pretrained_checkpoint
 
     if cfg.init == "pretrained":
         return pretrained_checkpoint(cfg.domain)
-    if cfg.init == "search_seeded":
-        return search_seeded_checkpoint(cfg.domain)
+    if cfg.init in KEPT_STARTS:
+        return kept_checkpoint(cfg.domain, cfg.init)
     if cfg.init == "shipped":
         raise ConfigError(f"teach.{cfg.domain}.init = shipped: the shipped model may be this stage's own network "
                           "(`plad models ship`), so its start would change with its result; name "
-                          "'search_seeded', 'pretrained' or a checkpoint's path")
+                          "'taught', 'search_seeded', 'pretrained' or a checkpoint's path")
     return Path(cfg.init)
 
 

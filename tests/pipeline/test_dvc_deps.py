@@ -422,9 +422,11 @@ def expected_files(stage: Stage, layout: Layout) -> tuple[set[str], set[str]]:
     if stage.group == "label":
         return rel([layout.prepared(domain)]), rel([layout.labels(domain), layout.labels_dir / f"{domain}.json"])
     if stage.group == "teach":
-        # the networks its init may name: the shipped SP (pretrained) and the kept search-seeded one with its index
+        # the networks its init may name: the shipped SP (pretrained) and the kept search-seeded and taught ones
+        # with their indexes
         starts = [Path(f"plad/shipped/{domain}/pretrained.pt"), Path(f"plad/shipped/{domain}/search_seeded.pt"),
-                  Path("plad/shipped/search_seeded.json")]
+                  Path("plad/shipped/search_seeded.json"), Path(f"plad/shipped/{domain}/taught.pt"),
+                  Path("plad/shipped/taught.json")]
         return rel([layout.labels(domain), layout.prepared(domain), *starts]), \
             rel([layout.finetune_dir(domain, "taught"), layout.finetune_summary(domain, "taught")])
     if stage.group in ("evaluate", "evaluate_refined", "evaluate_taught", "evaluate_taught_refined"):

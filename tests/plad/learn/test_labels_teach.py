@@ -146,12 +146,18 @@ def test_the_start_is_its_network_not_the_name_init_gives_it(tmp_path, tiny_chec
 
 
 def test_teach_starts_from_the_kept_search_seeded_network_never_the_shipped_model(tmp_path):
-    from plad.shipped import ShipError, search_seeded_checkpoint
+    from plad.shipped import ShipError, kept_checkpoint, search_seeded_checkpoint, sha256_file
     from plad.stages.teach import init_checkpoint
 
     for domain in ("csg2d", "csg3d", "shapeassembly"):
         path = init_checkpoint(build(TeachConfig, {"domain": domain, "init": "search_seeded"}, "teach"))
         assert path == search_seeded_checkpoint(domain) and path.name == "search_seeded.pt"
+        # the kept taught network: a copy of a shipped one, indexed with the commit that shipped it
+        kept = init_checkpoint(build(TeachConfig, {"domain": domain, "init": "taught"}, "teach"))
+        assert kept == kept_checkpoint(domain, "taught") and kept.name == "taught.pt" and kept.parent.name == domain
+        entry = json.loads((kept.parent.parent / "taught.json").read_text())["models"][domain]
+        assert entry["sha256"] == sha256_file(kept)
+        assert entry["shipped_as"].startswith(f"plad/shipped/{domain}/model.pt at ")
     with pytest.raises(ConfigError, match=r"teach\.csg3d\.init = shipped: the shipped model"):
         init_checkpoint(build(TeachConfig, {"domain": "csg3d", "init": "shipped"}, "teach"))
     # a damaged or missing copy is named, never trained from
@@ -168,6 +174,8 @@ def test_teach_starts_from_the_kept_search_seeded_network_never_the_shipped_mode
         search_seeded_checkpoint("csg3d", folder)
     with pytest.raises(ShipError, match="no search-seeded network of csg2d"):
         search_seeded_checkpoint("csg2d", folder)
+    with pytest.raises(ShipError, match=r"taught\.json: missing \(the index of the taught networks\)"):
+        kept_checkpoint("csg3d", "taught", folder)
 
 
 def test_teach_config_errors_name_the_key(tmp_path, tiny_checkpoint):

@@ -99,14 +99,16 @@ def installed(tmp_path_factory) -> dict[str, Path]:
 def test_the_wheel_holds_every_data_file_of_the_package(installed):
     """Every file under plad/ of a clean clone that is not Python (the shipped networks and their sidecars and
     index, a domain's grafting library, ...) is in the wheel; only the lock files, made on demand, and the
-    search-seeded networks the teach@ stages of a clone start from (no inference reads them) are not."""
+    kept search-seeded and taught networks the teach@ stages of a clone start from (no inference reads them) are
+    not."""
     src = installed["src"]
-    clone_only = {"search_seeded.json", "search_seeded.pt"}
+    clone_only = {"search_seeded.json", "search_seeded.pt", "taught.json", "taught.pt"}
     wanted = {p.relative_to(src).as_posix() for p in (src / "plad").rglob("*")
               if p.is_file() and p.suffix not in (".py", ".pyc", ".lock") and "__pycache__" not in p.parts
               and p.name not in clone_only}
-    assert {f"plad/shipped/{d}/search_seeded.pt" for d in DOMAINS} <= \
-        {p.relative_to(src).as_posix() for p in (src / "plad").rglob("search_seeded.pt")}
+    for kept in ("search_seeded.pt", "taught.pt"):
+        assert {f"plad/shipped/{d}/{kept}" for d in DOMAINS} <= \
+            {p.relative_to(src).as_posix() for p in (src / "plad").rglob(kept)}
     with zipfile.ZipFile(installed["wheel"]) as whl:
         packed = set(whl.namelist())
     assert {"plad/shipped/pretrained.json", "plad/domains/csg2d/graft_library.npz"} <= wanted
