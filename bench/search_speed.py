@@ -167,6 +167,8 @@ SPEEDUPS: dict[str, Callable[[], contextlib.AbstractContextManager]] = {
     "ShapeAssembly insertion's placements: per-cuboid moves cached, norms without checks": _reference_placements,
     "ShapeAssembly's voxel counts compiled (numba), voxel by voxel over each cuboid":
         functools.partial(_set, "plad.data.datasets.partnet.voxels", "_COMPILED", False),
+    "IoU's bit counts read in place (rows of whole chunks of words, no zero padding copied)":
+        functools.partial(_set, "plad.metrics", "_chunk_words", lambda row_bytes: None),
 }
 
 

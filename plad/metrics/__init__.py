@@ -63,6 +63,15 @@ _LANES16 = 0x0000FFFF0000FFFF
 _CHUNK_WORDS = 255  # int64 words summed before a byte lane could carry into the next
 
 
+def _chunk_words(row_bytes: int) -> int | None:
+    """The largest number of int64 words, at most :data:`_CHUNK_WORDS` and at least 16, that divides a row of
+    ``row_bytes`` bytes into whole chunks (no padding copy), or None."""
+    if row_bytes % 8:
+        return None
+    words = row_bytes // 8
+    return next((c for c in range(min(words, _CHUNK_WORDS), 15, -1) if words % c == 0), None)
+
+
 def count_true(flags: torch.Tensor) -> torch.Tensor:
     """Number of True entries per row of a bool (N, M) tensor -> int64 (N,).
 
@@ -70,14 +79,17 @@ def count_true(flags: torch.Tensor) -> torch.Tensor:
     and uint8 tensors element by element (~0.2 ns/byte here), but int64 ones at
     memory speed. A bool is one byte holding 0 or 1, so each int64 word of the
     row holds 8 byte lanes; summing at most 255 words cannot carry across
-    lanes, and the lanes are then folded into 16- and 32-bit lanes (SWAR).
+    lanes, and the lanes are then folded into 16- and 32-bit lanes (SWAR). Where the words of a row split into
+    equal chunks of at most 255, the row is read where it lies; else it is padded with zero bytes (a copy).
     """
     n = flags.shape[0]
     words = flags.reshape(n, math.prod(flags.shape[1:]))
-    pad = (-words.shape[1]) % (8 * _CHUNK_WORDS)
-    if pad:
-        words = torch.nn.functional.pad(words, (0, pad))
-    w = words.contiguous().view(torch.int64).view(n, words.shape[1] // (8 * _CHUNK_WORDS), _CHUNK_WORDS)
+    chunk = _chunk_words(words.shape[1])
+    if chunk is None:   # not a whole number of words, or no divisor up to the cap: pad with zeros (a copy)
+        chunk = _CHUNK_WORDS
+        words = torch.nn.functional.pad(words, (0, (-words.shape[1]) % (8 * chunk)))
+    # (n, chunks, chunk) int64 words: a 32^3 grid is 4,096 words, 32 chunks of 128, read in place
+    w = words.contiguous().view(torch.int64).view(n, words.shape[1] // (8 * chunk), chunk)
     s = w.sum(2)                                           # (n, chunks): byte lanes <= 255
     s = (s & _LANES8) + ((s >> 8) & _LANES8)               # 16-bit lanes <= 510
     s = (s & _LANES16) + ((s >> 16) & _LANES16)            # 32-bit lanes <= 1020
