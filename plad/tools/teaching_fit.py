@@ -12,7 +12,10 @@ metric on the fit sample (the ceiling, from the run's ``summary.json``) as a dot
     python -m plad.tools.teaching_fit -o docs/teaching-fit.png results/finetune/*/taught.json
 
 Several runs of one domain share its panel, one colour each, named by the sizes their start was grown to;
-``--against epoch`` draws them at equal steps instead of equal hours.
+``--against epoch`` draws them at equal steps instead of equal hours. A run that continues a kept taught network
+(``init: taught``) is drawn after the run listed before it for its domain (its hours and epochs added to that
+run's last), as the earlier run of its kept network: list them in that order, e.g. the committed summary of the
+earlier run (``git show <commit>:results/finetune/<domain>/taught.json``) before today's.
 """
 from __future__ import annotations
 
@@ -108,10 +111,26 @@ def run_name(summary: dict) -> str:
 
     grow = summary.get("grow")
     name = "grown: " + sizes(grow) if grow else "the start's size"
+    if summary.get("init") == "taught":
+        name = "continued, " + name
     then = summary.get("then")
     if isinstance(then, dict) and then.get("grow"):
         name += "; then " + sizes(then["grow"])
     return name
+
+
+def continued(runs: list[tuple[str, dict, dict]]) -> list[tuple[str, dict, dict]]:
+    """``runs`` with each run that starts from a kept taught network (``init: taught``) moved to after the run
+    listed before it for its domain: its hours and epochs plus that run's last (as drawn, so chains add up)."""
+    out: list[tuple[str, dict, dict]] = []
+    for domain, c, summary in runs:
+        before = [prev for d, prev, _ in out if d == domain]
+        if summary.get("init") == "taught" and before and before[-1]["epoch"]:
+            last = before[-1]
+            c = {**c, "hours": [h + last["hours"][-1] for h in c["hours"]],
+                 "epoch": [e + last["epoch"][-1] for e in c["epoch"]]}
+        out.append((domain, c, summary))
+    return out
 
 
 def plot(histories: list[Path], output: Path, against: str = "hours") -> None:
@@ -120,7 +139,7 @@ def plot(histories: list[Path], output: Path, against: str = "hours") -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = [load_run(h) for h in histories]
+    runs = continued([load_run(h) for h in histories])
     domains = sorted({d for d, _, _ in runs})
     fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 4.2), squeeze=False)
     for ax, domain in zip(axes[0], domains):

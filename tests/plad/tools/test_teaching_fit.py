@@ -65,3 +65,25 @@ def test_runs_of_one_domain_share_its_panel_named_by_their_growth(tmp_path):
         out = tmp_path / f"{against}.png"
         assert main([*paths, "-o", str(out), "--against", against]) == 0
         assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_run_continuing_a_kept_network_is_drawn_after_the_run_before_it(tmp_path):
+    from plad.tools.teaching_fit import continued, load_run, main, run_name
+
+    def summary(name: str, init: str, seconds: list[float], grow: dict) -> object:
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"domain": "csg3d", "metric": "iou", "init": init, "grow": grow, "history": [
+            {"val": 0.5 + i / 100, "fit": 0.6, "seconds": s} for i, s in enumerate(seconds)]}))
+        return path
+
+    first = summary("first", "search_seeded", [1800.0, 3600.0, 7200.0], {"enc_channels": [8, 16]})
+    then = summary("then", "taught", [900.0, 1800.0], {"n_layers": 5})
+    again = summary("again", "taught", [3600.0], {"dim_ff": 512})
+    runs = continued([load_run(p) for p in (first, then, again)])
+    assert runs[0][1]["hours"] == [0.5, 1.0, 2.0] and runs[0][1]["epoch"] == [1.0, 2.0, 3.0]
+    assert runs[1][1]["hours"] == [2.25, 2.5] and runs[1][1]["epoch"] == [4.0, 5.0]
+    assert runs[2][1]["hours"] == [3.5] and runs[2][1]["epoch"] == [6.0]            # a chain adds up
+    assert run_name(runs[1][2]) == "continued, grown: n_layers 5"
+    # alone (the run before it not listed) it starts at its own zero
+    assert continued([load_run(then)])[0][1]["hours"] == [0.25, 0.5]
+    assert main([str(first), str(then), "-o", str(tmp_path / "fit.png")]) == 0
