@@ -141,7 +141,8 @@ def plot(histories: list[Path], output: Path, against: str = "hours") -> None:
 
     runs = continued([load_run(h) for h in histories])
     domains = sorted({d for d, _, _ in runs})
-    fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 4.2), squeeze=False)
+    shared = any(sum(d == domain for d, _, _ in runs) > 1 for domain in domains)
+    fig, axes = plt.subplots(1, len(domains), figsize=(5.2 * len(domains), 6.0 if shared else 4.2), squeeze=False)
     for ax, domain in zip(axes[0], domains):
         mine = [(c, summary) for d, c, summary in runs if d == domain]
         ceilings = set()
@@ -158,7 +159,10 @@ def plot(histories: list[Path], output: Path, against: str = "hours") -> None:
         ax.set_title(f"{domain}: taught by search labels")
         ax.set_xlabel("hours of teaching (one thread, wall clock)" if against == "hours" else "epochs of teaching")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7 if len(mine) == 1 else 6)
+        if len(mine) == 1:
+            ax.legend(fontsize=7)
+        else:   # several runs' long names: under the panel, not over its curves
+            ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     fig.tight_layout()
     save_figure(fig, output, dpi=110)
 
