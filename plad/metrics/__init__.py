@@ -3,6 +3,7 @@ caller needs its own comparator: use :meth:`Metric.better` and :meth:`Metric.bes
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -63,6 +64,7 @@ _LANES16 = 0x0000FFFF0000FFFF
 _CHUNK_WORDS = 255  # int64 words summed before a byte lane could carry into the next
 
 
+@functools.lru_cache(maxsize=64)
 def _chunk_words(row_bytes: int) -> int | None:
     """The largest number of int64 words, at most :data:`_CHUNK_WORDS` and at least 16, that divides a row of
     ``row_bytes`` bytes into whole chunks (no padding copy), or None."""

@@ -592,7 +592,6 @@ def describe_totals(model: ShippedModel) -> str:
 #: a taught network as it was shipped, the start of a later teaching run that continues it (a fresh clone
 #: rebuilds that run without training its earlier ones again; the index names the commit and run it came from)
 KEPT_STARTS = {"search_seeded": "search_seeded.json", "taught": "taught.json"}
-SEARCH_SEEDED_INDEX = KEPT_STARTS["search_seeded"]
 
 
 def kept_checkpoint(domain: str, name: str, folder: Path | None = None) -> Path:
@@ -615,6 +614,33 @@ def kept_checkpoint(domain: str, name: str, folder: Path | None = None) -> Path:
     if got != entry["sha256"]:
         raise ShipError(f"{path}: sha256 {got[:12]} differs from {entry['sha256'][:12]} in {index_path.name}")
     return path
+
+
+def keep_taught(domain: str, commit: str, folder: Path | None = None) -> dict:
+    """Copy the shipped taught model of ``domain`` to ``<domain>/taught.pt`` and index it in ``taught.json`` as
+    shipped at ``commit`` (the start ``teach.<domain>.init: taught`` continues); returns the index entry.
+    ShipError when there is no shipped model, it differs from its sidecar or it is not a taught network."""
+    from plad.fsutil import atomic_write_text
+
+    folder = Path(folder) if folder is not None else shipped_dir()
+    shipped = shipped_model(domain, folder)
+    if shipped is None:
+        raise ShipError(f"{folder / domain}: no shipped model to keep")
+    shipped.verify()
+    if shipped.info.get("method") != "taught":
+        raise ShipError(f"{shipped.checkpoint}: method {shipped.info.get('method')!r}, not a taught network")
+    target = folder / domain / "taught.pt"
+    _copy(shipped.checkpoint, target)
+    index_path = folder / KEPT_STARTS["taught"]
+    index = json.loads(index_path.read_text()) if index_path.exists() else {"format": "plad-taught-1", "models": {}}
+    metrics = shipped.info.get("metrics") or {}
+    entry = {"file": f"{domain}/taught.pt", "sha256": sha256_file(target),
+             "from": shipped.info["checkpoint"].get("shipped_from"),
+             "shipped_as": f"plad/shipped/{domain}/model.pt at {commit}",
+             "test": {k: metrics[k] for k in ("metric", "beam", "mean", "n") if k in metrics}}
+    index["models"] = {**index.get("models", {}), domain: entry}
+    atomic_write_text(index_path, json.dumps(index, indent=1) + "\n")
+    return entry
 
 
 def search_seeded_checkpoint(domain: str, folder: Path | None = None) -> Path:

@@ -15,12 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
-
-from plad.fsutil import atomic_write, atomic_write_text, sha256_file
 
 
 def shipping_commit(path: Path) -> str:
@@ -34,31 +31,11 @@ def shipping_commit(path: Path) -> str:
 
 
 def keep(domain: str, folder: Path | None = None, commit: str | None = None) -> dict:
-    """Copy the shipped taught model of ``domain`` to ``<domain>/taught.pt`` and index it; returns the entry.
-
-    ShipError when there is no shipped model, it differs from its sidecar or it is not a taught network."""
-    from plad.shipped import KEPT_STARTS, ShipError, shipped_dir, shipped_model
+    """:func:`plad.shipped.keep_taught`, the commit named by git where ``commit`` is not given."""
+    from plad.shipped import keep_taught, shipped_dir
 
     folder = Path(folder) if folder is not None else shipped_dir()
-    shipped = shipped_model(domain, folder)
-    if shipped is None:
-        raise ShipError(f"{folder / domain}: no shipped model to keep")
-    shipped.verify()
-    if shipped.info.get("method") != "taught":
-        raise ShipError(f"{shipped.checkpoint}: method {shipped.info.get('method')!r}, not a taught network")
-    target = folder / domain / "taught.pt"
-    with shipped.checkpoint.open("rb") as src:
-        atomic_write(target, lambda out: shutil.copyfileobj(src, out))
-    index_path = folder / KEPT_STARTS["taught"]
-    index = json.loads(index_path.read_text()) if index_path.exists() else {"format": "plad-taught-1", "models": {}}
-    metrics = shipped.info.get("metrics") or {}
-    entry = {"file": f"{domain}/taught.pt", "sha256": sha256_file(target),
-             "from": shipped.info["checkpoint"].get("shipped_from"),
-             "shipped_as": f"plad/shipped/{domain}/model.pt at {commit or shipping_commit(shipped.checkpoint)}",
-             "test": {k: metrics[k] for k in ("metric", "beam", "mean", "n") if k in metrics}}
-    index["models"] = {**index.get("models", {}), domain: entry}
-    atomic_write_text(index_path, json.dumps(index, indent=1) + "\n")
-    return entry
+    return keep_taught(domain, commit or shipping_commit(folder / domain / "model.pt"), folder)
 
 
 def main(argv: list[str] | None = None) -> None:
